@@ -1,0 +1,67 @@
+"""Integrator registry: kebab-case keys name a formulation and its preset options.
+
+``make("lobatto3ab3:newton_tol=1e-12", h=0.05)`` builds the frozen dataclass of the key with
+the preset options, the ``key=value`` options and the keyword overrides, in that order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+
+from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
+from problems import SpecError, parse_value, split_spec, suggest
+
+#: key -> ("module:Class", preset options)
+REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
+    "lobatto3ab2": ("integrators.lobatto:LobattoIIIAIIIB", {"stages": 2}),
+    "lobatto3ab3": ("integrators.lobatto:LobattoIIIAIIIB", {"stages": 3}),
+    "lobatto3ab4": ("integrators.lobatto:LobattoIIIAIIIB", {"stages": 4}),
+    "rattle": ("integrators.rattle:Rattle", {}),
+}
+
+
+def register(key: str, target: str, **preset) -> None:
+    """Register ``key`` for the class at ``"module:Class"`` with preset options."""
+    if key in REGISTRY:
+        raise ValueError(f"integrator {key!r} registered twice")
+    REGISTRY[key] = (target, preset)
+
+
+def cls_of(key: str) -> type[Integrator]:
+    """The class behind a registry key."""
+    module, _, name = REGISTRY[key][0].partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def make(spec: str, **overrides) -> Integrator:
+    """Build the integrator named by ``spec`` (``key`` or ``key:opt=value,...``).
+
+    Overrides (``h``, ``rtol``, ``atol``) that the class does not have are ignored, so the
+    runner can pass ``h`` to every method and only fixed-step ones take it.
+    """
+    key, raw = split_spec(spec)
+    if key not in REGISTRY:
+        raise SpecError(f"unknown integrator {key!r}{suggest(key, REGISTRY)}; "
+                        f"known: {', '.join(sorted(REGISTRY))}")
+    cls = cls_of(key)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    options = dict(REGISTRY[key][1])
+    for name, text in raw.items():
+        if name not in fields:
+            raise SpecError(f"integrator {key!r} has no option {name!r}{suggest(name, fields)}; "
+                            f"options: {', '.join(fields)}")
+        default = options.get(name, fields[name].default)
+        options[name] = parse_value(text, default, f"integrator {key!r}, option {name!r}")
+    options.update({k: v for k, v in overrides.items() if k in fields and v is not None})
+    integrator = cls(**options)
+    try:
+        integrator.check()
+    except ValueError as exc:
+        raise SpecError(f"integrator {spec!r}: {exc}") from None
+    return integrator
+
+
+def keys() -> list[str]:
+    """Registered keys, in registration order."""
+    return list(REGISTRY)

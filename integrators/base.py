@@ -1,0 +1,106 @@
+"""The integrator contract: frozen options, ``prepare`` then ``solve``, a bounded trajectory.
+
+An integrator is a frozen dataclass whose fields are all of its options; what ran is
+exactly ``asdict(integrator)``. ``prepare(case, grid)`` does all set-up (compilation,
+solver construction) and returns a zero-argument ``solve`` that the runner times on its own.
+``solve`` returns a :class:`Trajectory` whose size does not depend on the number of steps:
+per-window maxima of the residuals and of the energy error, and a bounded set of sampled
+states. Failure is data: a run that cannot go on ends with a status and a message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Callable, ClassVar
+
+import numpy as np
+
+from problems.case import Case
+
+#: Run status values (design notes, section 6).
+OK, FAILED, TIMEOUT, ERROR, SKIPPED = "ok", "failed", "timeout", "error", "skipped"
+
+#: Work counters every run reports (zero where a method has no such work).
+COUNTERS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """What to record over the horizon ``[t0, t_end]``.
+
+    Parameters
+    ----------
+    t0, t_end : float
+        The horizon.
+    n_windows : int
+        Number of windows over which maxima of ``|g|``, ``|G v + g_t|`` and ``|H - H0|``
+        are kept (the drift series).
+    n_samples : int
+        Number of states kept, evenly spread over the steps.
+    """
+
+    t0: float
+    t_end: float
+    n_windows: int = 1000
+    n_samples: int = 2000
+
+
+@dataclass
+class Trajectory:
+    """What a solve returns: bounded in size whatever the number of steps.
+
+    ``windows`` maps ``"t"`` (window end times), ``"pos"``, ``"vel"``, ``"energy"`` and one
+    entry per declared invariant (``"inv:NAME"``) to arrays of per-window maxima; windows no
+    step reached are dropped. ``samples`` holds ``"t"``, ``"q"`` and ``"v"``. ``sampling``
+    says where residuals were measured (``"every step"``, ``"every internal step"`` or a
+    dense output grid).
+    """
+
+    status: str
+    message: str
+    t_final: float
+    q_final: np.ndarray
+    v_final: np.ndarray
+    windows: dict[str, np.ndarray]
+    samples: dict[str, np.ndarray]
+    counts: dict[str, int]
+    sampling: str = "every step"
+    fail_step: int | None = None
+    fail_time: float | None = None
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """Base class: subclasses add their options as dataclass fields.
+
+    Class attributes
+    ----------------
+    adaptive : bool
+        Whether the method controls its own step (``rtol``/``atol``) or takes ``h``.
+    order : int or None
+        Nominal order, for convergence plots.
+    """
+
+    adaptive: ClassVar[bool] = False
+
+    @property
+    def order(self) -> int | None:
+        return None
+
+    def options(self) -> dict[str, object]:
+        """Every option of this integrator (what ran)."""
+        return asdict(self)
+
+    def prepare(self, case: Case, grid: Grid) -> Callable[[], Trajectory]:
+        raise NotImplementedError
+
+    def check(self) -> None:
+        """Validate the options; raise ``ValueError`` naming the bad one."""
+        h = getattr(self, "h", None)
+        if h is not None and not (np.isfinite(h) and h > 0):
+            raise ValueError(f"{type(self).__name__}: h = {h} must be positive")
+        for name in ("rtol", "atol"):
+            tol = getattr(self, name, None)
+            if tol is not None and not (0 < tol < 1):
+                raise ValueError(f"{type(self).__name__}: {name} = {tol} must lie in (0, 1)")

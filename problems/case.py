@@ -1,0 +1,146 @@
+"""A benchmark case: a system with consistent initial values, a horizon and a reference."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import jax.numpy as jnp
+import numpy as np
+
+from problems.mechanics import Mechanics, System
+
+#: Initial residuals at or below this are round-off and accepted as they are.
+CONSISTENT_TOL = 1e-12
+#: Initial residuals up to this are projected away; larger ones are refused.
+PROJECT_TOL = 1e-6
+
+
+class InconsistentInitialValues(ValueError):
+    """Initial values violate the constraints by more than projection may repair."""
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A reference solution with its provenance.
+
+    Parameters
+    ----------
+    kind : {"exact", "published", "computed"}
+        Closed form, published values, or a documented tight-tolerance run.
+    source : str
+        Where it comes from (citation, or the command that regenerates it).
+    solution : callable
+        ``solution(t) -> (q, v)`` as numpy arrays.
+    times : tuple of float, optional
+        The only times at which the reference exists; ``None`` for any ``t``.
+    scored : tuple of int
+        Indices into the stacked state ``(q, v)`` that scores use.
+    """
+
+    kind: str
+    source: str
+    solution: Callable[[float], tuple[np.ndarray, np.ndarray]]
+    scored: tuple[int, ...]
+    times: tuple[float, ...] | None = None
+
+    def available_at(self, t: float) -> bool:
+        """Whether the reference exists at time ``t``."""
+        if self.times is None:
+            return True
+        return any(abs(t - s) <= 1e-12 * max(1.0, abs(s)) for s in self.times)
+
+
+@dataclass(frozen=True, eq=False)
+class Case:
+    """A system with consistent initial values, a time span, parameters and a reference.
+
+    Use :func:`make_case` to build one: it checks, and where needed projects, the
+    initial values.
+    """
+
+    name: str
+    system: System
+    q0: np.ndarray
+    v0: np.ndarray
+    t0: float
+    t_end: float
+    params: Mapping[str, object]
+    energy_scale: float
+    reference: Reference | None = None
+    notes: Mapping[str, object] = field(default_factory=dict)
+
+    @property
+    def mech(self) -> Mechanics:
+        return self.system.mech
+
+    def with_t_end(self, t_end: float) -> "Case":
+        """The same case over ``[t0, t_end]``."""
+        if not np.isfinite(t_end) or t_end <= self.t0:
+            raise ValueError(f"{self.name}: t_end = {t_end} must be finite and > t0 = {self.t0}")
+        return Case(self.name, self.system, self.q0, self.v0, self.t0, float(t_end),
+                    self.params, self.energy_scale, self.reference, self.notes)
+
+
+def residuals(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float) -> tuple[float, float]:
+    """Max-norms of ``g(q, t)`` and ``G v + g_t``."""
+    t = jnp.asarray(t, dtype=jnp.float64)
+    pos = float(jnp.max(jnp.abs(mech.g(jnp.asarray(q), t)), initial=0.0))
+    vel = float(jnp.max(jnp.abs(mech.vel_residual(jnp.asarray(q), jnp.asarray(v), t)), initial=0.0))
+    return pos, vel
+
+
+def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
+            tol: float = 1e-15, max_iter: int = 50) -> tuple[np.ndarray, np.ndarray]:
+    """Mass-orthogonal projection onto ``g = 0`` and then ``G v + g_t = 0``.
+
+    Positions by the Gauss-Newton iteration ``q <- q - M^{-1} G^T (G M^{-1} G^T)^+ g``;
+    velocities by the one linear projection with the same metric. Least squares (``lstsq``)
+    keeps it valid for redundant constraints.
+    """
+    t = jnp.asarray(t, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    for _ in range(max_iter):
+        r = mech.g(q, t)
+        if float(jnp.max(jnp.abs(r), initial=0.0)) <= tol:
+            break
+        G = mech.G(q, t)
+        MinvGT = mech.solve_mass(q, G.T)
+        q = q - MinvGT @ jnp.linalg.lstsq(G @ MinvGT, r)[0]
+    G = mech.G(q, t)
+    MinvGT = mech.solve_mass(q, G.T)
+    v = jnp.asarray(v, dtype=jnp.float64)
+    v = v - MinvGT @ jnp.linalg.lstsq(G @ MinvGT, mech.vel_residual(q, v, t))[0]
+    return np.asarray(q), np.asarray(v)
+
+
+def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
+              params: Mapping[str, object], energy_scale: float,
+              reference: Reference | None = None, **notes) -> Case:
+    """Build a :class:`Case`, checking the initial values.
+
+    Residuals up to :data:`CONSISTENT_TOL` are accepted; up to :data:`PROJECT_TOL` they are
+    projected away (recorded in ``notes['projected']``); larger ones, or non-finite values,
+    raise :class:`InconsistentInitialValues` with the residuals.
+    """
+    q0 = np.asarray(q0, dtype=np.float64)
+    v0 = np.asarray(v0, dtype=np.float64)
+    if q0.shape != (system.n,) or v0.shape != (system.n,):
+        raise InconsistentInitialValues(
+            f"{name}: q0 {q0.shape} and v0 {v0.shape} must both have shape ({system.n},)")
+    if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(v0))):
+        raise InconsistentInitialValues(f"{name}: initial values are not finite")
+    t0, t_end = map(float, t_span)
+    if not np.isfinite(t_end) or t_end <= t0:
+        raise ValueError(f"{name}: t_end = {t_end} must be finite and > t0 = {t0}")
+    mech = system.mech
+    pos, vel = residuals(mech, q0, v0, t0)
+    if max(pos, vel) > PROJECT_TOL:
+        raise InconsistentInitialValues(
+            f"{name}: inconsistent initial values: |g(q0)| = {pos:.3e}, "
+            f"|G v0 + g_t| = {vel:.3e} (projection is allowed up to {PROJECT_TOL:g})")
+    if max(pos, vel) > CONSISTENT_TOL:
+        q0, v0 = project(mech, q0, v0, t0)
+        notes = {**notes, "projected": f"|g| = {pos:.2e}, |G v + g_t| = {vel:.2e} before projection"}
+    return Case(name, system, q0, v0, t0, t_end, dict(params), float(energy_scale),
+                reference, notes)
