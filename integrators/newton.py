@@ -10,6 +10,17 @@ import jax.numpy as jnp
 EPS = float(jnp.finfo(jnp.float64).eps)
 
 
+def solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """``A^{-1} b``; a 1 x 1 system is a division.
+
+    A LAPACK call is opaque to XLA's fusion and costs microseconds; for a single
+    constraint that overhead is most of a small problem's step.
+    """
+    if A.shape[0] == 1:
+        return b / A[0, 0]
+    return jnp.linalg.solve(A, b)
+
+
 class NewtonResult(NamedTuple):
     z: jax.Array
     converged: jax.Array
@@ -45,7 +56,7 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
 
     def body(state):
         z, r, _, _, it = state
-        dz = jnp.linalg.solve(jax.jacfwd(residual)(z), -r)
+        dz = solve(jax.jacfwd(residual)(z), -r)
         z = z + dz
         return z, residual(z), norm(r), norm(dz), it + 1
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from integrators.base import Grid, Integrator
 from integrators.loop import march
-from integrators.newton import newton
+from integrators.newton import newton, solve
 from problems.case import Case
 
 
@@ -96,7 +96,7 @@ class Rattle(Integrator):
             F1 = F(t1, q1, p_half)
             base = p_half + 0.5 * h * F1
             MinvG1T = mech.solve_mass(q1, G1.T)
-            mu = jnp.linalg.solve(0.5 * h * G1 @ MinvG1T,
+            mu = solve(0.5 * h * G1 @ MinvG1T,
                                   G1 @ mech.H_p(q1, base) + mech.g_t(q1, t1))
             p1 = base - 0.5 * h * G1.T @ mu
             it = sol.iterations
