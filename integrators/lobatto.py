@@ -45,14 +45,15 @@ class LobattoIIIAIIIB(Integrator):
     stages : int
         Number of stages ``s >= 2``.
     newton_tol : float
-        Residual tolerance of the stage equations, relative to ``1 + |z|``.
+        Max-norm residual tolerance of the stage equations; the default 1e-16 iterates to
+        round-off (see :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     """
 
     h: float = 0.01
     stages: int = 3
-    newton_tol: float = 1e-14
+    newton_tol: float = 1e-16
     newton_max_iter: int = 20
 
     @property

@@ -36,8 +36,9 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     correction, so that ``tol`` bounds the constraint violation left in the solution. Two
     more exits count as converged because no further iteration can gain anything: the
     correction is at round-off (``||dz||_inf <= 4 eps (1 + ||z||_inf)``), or the residual
-    has stopped contracting (less than halved) while within ``1e3 tol`` (its round-off
-    floor, when the equations' terms are large).
+    has stopped contracting (less than halved) within a thousand times its round-off floor
+    ``max(tol, eps (1 + ||z||_inf))``. A ``tol`` below round-off (such as 1e-16) therefore
+    means "iterate to round-off".
 
     Returns the iterate, whether it converged, the number of iterations (each one
     Jacobian evaluation and one LU solve) and the final residual norm.
@@ -47,7 +48,8 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
         return jnp.max(jnp.abs(x))
 
     def done(z, r, r_prev, dz_norm):
-        stalled = (norm(r) > 0.5 * r_prev) & (norm(r) <= 1e3 * tol)
+        floor = jnp.maximum(tol, EPS * (1.0 + norm(z)))
+        stalled = (norm(r) > 0.5 * r_prev) & (norm(r) <= 1e3 * floor)
         return (norm(r) <= tol) | (dz_norm <= 4 * EPS * (1.0 + norm(z))) | stalled
 
     def cond(state):

@@ -42,13 +42,14 @@ class Rattle(Integrator):
     h : float
         Step size (shrunk to divide the horizon evenly).
     newton_tol : float
-        Residual tolerance of the position projection, relative to ``1 + |z|``.
+        Max-norm residual tolerance of the position projection; the default 1e-16 iterates to
+        round-off (see :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     """
 
     h: float = 0.01
-    newton_tol: float = 1e-14
+    newton_tol: float = 1e-16
     newton_max_iter: int = 20
 
     @property

@@ -1,0 +1,100 @@
+"""Lobatto IIIA-IIIB (SPARK) and RATTLE: order, agreement, constraints, energy, failure."""
+
+import numpy as np
+import pytest
+
+import integrators
+import problems
+from benchmarks.runner import RunSpec, execute
+from integrators import Grid
+
+SPARK = ["rattle", "lobatto3ab2", "lobatto3ab3", "lobatto3ab4"]
+
+
+def solve(key, problem, h, t_end, **grid):
+    case = problems.make(problem, t_end=t_end)
+    traj = integrators.make(key, h=h).prepare(case, Grid(case.t0, t_end, **grid))()
+    return case, traj
+
+
+def position_error(case, traj):
+    q_ref, _ = case.reference.solution(traj.t_final)
+    return float(np.max(np.abs(traj.q_final - q_ref)))
+
+
+@pytest.mark.parametrize("key, hs", [
+    ("lobatto3ab2", [0.04, 0.02, 0.01, 0.005]),
+    ("lobatto3ab3", [0.1, 0.05, 0.025, 0.0125]),
+    ("lobatto3ab4", [0.2, 0.1, 0.05, 0.025]),
+])
+def test_observed_order_is_2s_minus_2(key, hs):
+    errors = []
+    for h in hs:
+        case, traj = solve(key, "pendulum", h, 2.0)
+        assert traj.status == "ok", traj.message
+        errors.append(position_error(case, traj))
+    errors = np.array(errors)
+    # Errors near round-off (1e-12 after 2 s of a unit pendulum) carry no order
+    # information and are masked; at least three points must remain for the fit.
+    keep = errors > 1e-12
+    assert keep.sum() >= 3, errors
+    slope = np.polyfit(np.log(np.array(hs)[keep]), np.log(errors[keep]), 1)[0]
+    nominal = integrators.make(key).order
+    # The step sizes are in the asymptotic range, where the fitted slope matches the
+    # nominal order to a few tenths.
+    assert abs(slope - nominal) < 0.3, (slope, errors)
+
+
+@pytest.mark.parametrize("problem, h, t_end", [("sps-receiver", 0.05, 50.0), ("pendulum", 0.01, 10.0)])
+def test_rattle_equals_lobatto3ab2(problem, h, t_end):
+    _, a = solve("rattle", problem, h, t_end)
+    _, b = solve("lobatto3ab2", problem, h, t_end)
+    # The two solve the same equations with different unknowns; the difference is
+    # round-off of order 1e-16 per step, accumulated over at most 1000 steps.
+    assert np.max(np.abs(a.q_final - b.q_final)) <= 1e-12
+    assert np.max(np.abs(a.v_final - b.v_final)) <= 1e-12
+
+
+@pytest.mark.parametrize("key", SPARK)
+@pytest.mark.parametrize("problem, h, t_end", [("sps-receiver", 0.05, 50.0), ("pendulum", 0.01, 20.0)])
+def test_constraints_hold_to_round_off_at_every_step(key, problem, h, t_end):
+    _, traj = solve(key, problem, h, t_end)
+    assert traj.status == "ok"
+    # g = 0 and G v = 0 are solved to newton_tol = 1e-14 at every step; 1e-13 leaves a
+    # decade for the round-off of evaluating g with O(1) coordinates.
+    assert np.max(traj.windows["pos"]) <= 1e-13
+    assert np.max(traj.windows["vel"]) <= 1e-13
+
+
+@pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
+def test_energy_error_is_bounded_without_secular_drift(key):
+    case, traj = solve(key, "pendulum", 0.01, 1000.0, n_windows=200)
+    assert traj.status == "ok" and traj.counts["n_steps"] == 100_000
+    t, e = traj.windows["t"], traj.windows["energy"]
+    slope = np.polyfit(t, e, 1)[0]
+    # A symplectic method's energy error oscillates with a bounded amplitude: over
+    # 1e5 steps the fitted trend must stay below a tenth of that amplitude (a first-order
+    # drift would make it of the order of the amplitude itself).
+    assert abs(slope) * (t[-1] - t[0]) <= 0.1 * e.max(), (slope, e.max())
+
+
+def test_nonconvergence_is_recorded_as_failed_and_the_suite_goes_on():
+    # At the seed's h = 0.5 the position projection of step 2 has no real solution: the
+    # straight line q1(lambda) misses the constraint ellipse, so Newton cannot converge.
+    bad = execute(RunSpec("sps-receiver", "rattle", h=0.5, t_end=50.0), repeats=1)
+    good = execute(RunSpec("sps-receiver", "rattle", h=0.05, t_end=50.0), repeats=1)
+    row = bad.row
+    assert row["status"] == "failed"
+    assert row["fail_step"] == 2 and row["fail_time"] == pytest.approx(0.5)
+    assert "step 2" in row["message"] and "Newton" in row["message"]
+    assert row["n_steps"] == 1 and row["max_pos_residual"] is not None
+    assert good.row["status"] == "ok"
+
+
+def test_pendulum_a01_long_horizon_reference_is_periodic():
+    # The exact solution must return to the release point after whole periods; this
+    # guards the argument reduction of the elliptic functions at t ~ 2000 s.
+    case = problems.make("pendulum")
+    period = 4 * 1.8540746773013719 / np.sqrt(9.81)  # 4 K(1/2) / omega
+    q, v = case.reference.solution(843 * period)
+    assert np.allclose(q, [1.0, 0.0], atol=1e-10) and np.allclose(v, 0.0, atol=1e-9)

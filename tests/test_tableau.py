@@ -1,0 +1,49 @@
+"""Lobatto IIIA-IIIB coefficients: the identities that make the method what it is."""
+
+import numpy as np
+import pytest
+
+from integrators.tableau import TABLEAU_TOL, LobattoTableau, lobatto
+
+
+@pytest.mark.parametrize("s", [2, 3, 4, 5])
+def test_tableau_identities(s):
+    t = lobatto(s)
+    # Row sums, the quadrature and the symplecticity condition are exact identities; the
+    # coefficients come from double-precision polynomial integration, so a few ulps.
+    tol = TABLEAU_TOL
+    assert t.c[0] == 0.0 and t.c[-1] == 1.0
+    assert np.allclose(t.A.sum(1), t.c, atol=tol, rtol=0)
+    assert np.allclose(t.b, t.b_hat, atol=tol, rtol=0)
+    assert np.allclose(t.A[-1], t.b, atol=tol, rtol=0)
+    assert np.allclose(t.A_hat[:, -1], 0.0, atol=tol)
+    M = t.b[:, None] * t.A_hat + (t.b[:, None] * t.A).T - np.outer(t.b, t.b)
+    assert np.max(np.abs(M)) <= tol
+    # Gauss-Lobatto quadrature is exact for polynomials of degree 2s - 3, not 2s - 2.
+    assert all(abs(t.b @ t.c ** k - 1 / (k + 1)) <= tol for k in range(2 * s - 2))
+    assert abs(t.b @ t.c ** (2 * s - 2) - 1 / (2 * s - 1)) > 1e-6
+
+
+def test_known_three_stage_coefficients():
+    # Hairer, Lubich and Wanner (2006), Table II.1.2: Lobatto IIIA and IIIB, s = 3.
+    t = lobatto(3)
+    A = np.array([[0, 0, 0], [5 / 24, 1 / 3, -1 / 24], [1 / 6, 2 / 3, 1 / 6]])
+    Ah = np.array([[1 / 6, -1 / 6, 0], [1 / 6, 1 / 3, 0], [1 / 6, 5 / 6, 0]])
+    assert np.allclose(t.A, A, atol=1e-15) and np.allclose(t.A_hat, Ah, atol=1e-15)
+
+
+def test_seed_equation_12_as_printed_is_not_the_symplecticity_condition():
+    # The seed prints b_i ah_ij - b_j a_ij - b_i b_j = 0; the condition that holds (and
+    # makes the PRK symplectic) is b_i ah_ij + b_j a_ji - b_i b_j = 0.
+    t = lobatto(2)
+    printed = t.b[:, None] * t.A_hat - t.b[None, :] * t.A - np.outer(t.b, t.b)
+    assert np.max(np.abs(printed)) > 0.1
+
+
+def test_corrupted_tableau_is_refused():
+    t = lobatto(3)
+    A_hat = t.A_hat.copy()
+    A_hat[1, 0] += 1e-6  # keeps the row sum, breaks symplecticity
+    A_hat[1, 1] -= 1e-6
+    with pytest.raises(ValueError, match="symplecticity"):
+        LobattoTableau(3, t.c, t.b, t.b_hat, t.A, A_hat)
