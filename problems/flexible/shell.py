@@ -61,14 +61,15 @@ was possible:
   consistent mass, element contributions written to sparse triplets.
   Its ``Quad4`` quadrilateral integrates transverse shear at one point and
   keeps, as its documentation says, a spurious zero-energy mode: a free
-  square plate (8 x 8 elements) had seven zero frequencies instead of six,
-  which rules it out for a free-free spacecraft. ``Tria3DSG`` gave exactly
-  six zero frequencies on the free plate and the cantilever parameters
-  3.4765, 8.5425, 21.47, 27.45, 31.34 on a 16 x 16 grid, and is used here.
-  Its membrane field has no drilling enrichment (constant strain), which is
-  stiff for in-plane bending; the spacecraft's low modes are governed by
-  plate bending, and the mesh-convergence study of
-  :mod:`problems.flexible.study` shows what that costs.
+  square plate (4 x 4 and 8 x 8 elements) had seven zero frequencies
+  instead of six, which rules it out for a free-free spacecraft.
+  ``Tria3DSG`` gave exactly six zero frequencies on the free plate and
+  converging cantilever parameters, and is used here (the verification
+  tables of :mod:`problems.flexible.study` give the numbers). Its membrane
+  field has no drilling enrichment (constant strain), which is stiff for
+  in-plane bending; the spacecraft's low modes are governed by plate
+  bending, and the mesh-convergence table of the full model shows what that
+  costs.
 * ``PyNiteFEA`` (3.2.0): its quadrilateral plate gives the drilling rotation
   a spring to ground equal to 1/1000 of the smallest rotational diagonal
   term, which resists rigid rotations about the normal (so a free structure
