@@ -107,7 +107,9 @@ class Mechanics:
         """``M(q)^{-1} b`` (b may be a vector or a matrix of columns)."""
         if self.constant_mass:
             return self._Minv @ b
-        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(self.mass(q)), b)
+        # LU, not Cholesky: under jacfwd the Cholesky solve's tangents become batched
+        # triangular solves, which XLA's CPU backend runs about 200x slower than LU's.
+        return jnp.linalg.solve(self.mass(q), b)
 
     def potential(self, q: Array) -> Array:
         """Potential energy ``U(q)`` (zero when none is declared)."""
@@ -193,7 +195,8 @@ class Mechanics:
         """Accelerations and multipliers from the index-1 system.
 
         Solves ``[M G^T; G 0] [a; lam] = [force; -gamma - stab]`` through the Schur
-        complement ``G M^{-1} G^T`` (m x m, Cholesky). ``stab`` is an extra
+        complement ``G M^{-1} G^T`` (m x m, Cholesky; least squares when redundant
+        constraints make it singular, see :meth:`schur_solve`). ``stab`` is an extra
         acceleration-level right-hand side (Baumgarte terms); ``None`` means zero.
 
         Returns
@@ -207,9 +210,25 @@ class Mechanics:
         rhs = G @ MinvF + self.gamma(q, v, t)
         if stab is not None:
             rhs = rhs + stab
-        S = G @ MinvGT
-        lam = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(S), rhs)
+        lam = self.schur_solve(G @ MinvGT, rhs)
         return MinvF - MinvGT @ lam, lam
+
+    @staticmethod
+    def schur_solve(S: Array, rhs: Array) -> Array:
+        """``S^{-1} rhs`` for ``S = G M^{-1} G^T`` by Cholesky, or by least squares if singular.
+
+        Redundant constraints (``G`` of rank below ``m``) make ``S`` positive semidefinite
+        only: its Cholesky factor then has a pivot at round-off level or breaks down (NaN).
+        When the smallest squared pivot is below ``1e-12`` times the largest (or not
+        finite), the minimum-norm least-squares solution (SVD) is returned instead: the
+        multipliers are then the minimum-norm ones, and ``G^T lam`` is the unique
+        constraint force.
+        """
+        factor = jax.scipy.linalg.cho_factor(S, lower=True)
+        pivots = jnp.diag(factor[0]) ** 2
+        deficient = ~(jnp.min(pivots) > 1e-12 * jnp.max(pivots))
+        return jax.lax.cond(deficient, lambda: jnp.linalg.lstsq(S, rhs)[0],
+                            lambda: jax.scipy.linalg.cho_solve(factor, rhs))
 
     def invariant_values(self, q: Array, v: Array) -> Array:
         """Declared invariants beyond energy, stacked (empty when none)."""
