@@ -18,6 +18,12 @@ REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
     "lobatto3ab3": ("integrators.lobatto:LobattoIIIAIIIB", {"stages": 3}),
     "lobatto3ab4": ("integrators.lobatto:LobattoIIIAIIIB", {"stages": 4}),
     "rattle": ("integrators.rattle:Rattle", {}),
+    "ida-ggl": ("integrators.ida:IDA", {"formulation": "ggl"}),
+    "ida-index1": ("integrators.ida:IDA", {"formulation": "index1"}),
+    "baumgarte-rk4": ("integrators.baumgarte:BaumgarteRK", {"solver": "rk4"}),
+    "baumgarte-tsit5": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "tsit5"}),
+    "baumgarte-dopri5": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "dopri5"}),
+    "baumgarte-dopri8": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "dopri8"}),
 }
 
 

@@ -1,0 +1,386 @@
+"""SUNDIALS IDA (variable-order BDF) on index-reduced forms of the equations of motion.
+
+The problem's JAX functions give the residual ``F(t, y, y')`` and its iteration matrix
+``dF/dy + cj dF/dy'`` (forward-mode autodiff, no finite differences); both are compiled once
+per case in ``prepare`` and handed to IDA through scikit-sundae. IDA runs in one-step mode
+so that every internal step is measured; the drift bookkeeping is
+:class:`integrators.record.Recorder`'s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import time
+from dataclasses import dataclass
+from functools import partial
+from typing import Callable, ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from sksundae.ida import IDA as SundialsIDA
+
+from integrators.base import FAILED, OK, Grid, Integrator
+from integrators.record import Recorder
+from problems.case import Case
+from problems.mechanics import Mechanics
+
+Residual = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+
+
+def ggl_residual(mech: Mechanics) -> Residual:
+    """Stabilised index-2 form of Gear, Gupta and Leimkuhler (1985), ``y = (q, v, lam, mu)``.
+
+    .. math::
+
+        0 = q' - v + G^T \\mu, \\quad 0 = M(q) v' - f(t, q, v) + G^T \\lambda, \\quad
+        0 = g(q, t), \\quad 0 = G v + g_t,
+
+    with ``f`` the full right-hand side (:meth:`Mechanics.force`). ``mu`` vanishes on the
+    exact solution; it is the multiplier that keeps ``q`` on ``g = 0`` while ``v`` obeys the
+    velocity constraint, so both constraint levels hold to the Newton tolerance.
+    """
+    n, m = mech.n, mech.m
+
+    def F(t, y, yp):
+        q, v, lam, mu = y[:n], y[n:2 * n], y[2 * n:2 * n + m], y[2 * n + m:]
+        G = mech.G(q, t)
+        return jnp.concatenate([
+            yp[:n] - v + G.T @ mu,
+            mech.mass(q) @ yp[n:2 * n] - mech.force(t, q, v) + G.T @ lam,
+            mech.g(q, t),
+            mech.vel_residual(q, v, t),
+        ])
+
+    return F
+
+
+def index1_residual(mech: Mechanics) -> Residual:
+    """Acceleration-level index-1 form, ``y = (q, v, lam)``.
+
+    .. math::
+
+        0 = q' - v, \\quad 0 = M(q) v' - f(t, q, v) + G^T \\lambda, \\quad
+        0 = G v' + \\gamma(q, v, t),
+
+    with ``gamma`` the curvature and ``g_tt`` terms (:meth:`Mechanics.gamma`), so that the
+    last row is ``d^2 g/dt^2 = 0``. Neither ``g = 0`` nor ``G v + g_t = 0`` is enforced: both
+    drift.
+    """
+    n, m = mech.n, mech.m
+
+    def F(t, y, yp):
+        q, v, lam = y[:n], y[n:2 * n], y[2 * n:2 * n + m]
+        G = mech.G(q, t)
+        return jnp.concatenate([
+            yp[:n] - v,
+            mech.mass(q) @ yp[n:2 * n] - mech.force(t, q, v) + G.T @ lam,
+            G @ yp[n:2 * n] + mech.gamma(q, v, t),
+        ])
+
+    return F
+
+
+class Formulation(NamedTuple):
+    """A DAE form: its residual builder and how many multiplier blocks of size ``m`` it has."""
+
+    residual: Callable[[Mechanics], Residual]
+    multiplier_blocks: int
+
+
+#: ``formulation`` option -> DAE form.
+FORMULATIONS: dict[str, Formulation] = {
+    "ggl": Formulation(ggl_residual, 2),
+    "index1": Formulation(index1_residual, 1),
+}
+
+#: ``multiplier_atol`` that keeps the multipliers out of the error test.
+EXCLUDED = 1e30
+
+#: IDA's direct linear solvers that take our dense Jacobian.
+LINEAR_SOLVERS = ("dense", "lapackdense")
+
+#: ``jacobian`` option -> whether our autodiff iteration matrix is handed to IDA (else IDA
+#: forms it by difference quotients of the residual).
+JACOBIANS = {"autodiff": True, "difference-quotient": False}
+
+
+@partial(jax.jit, static_argnames=("mech", "formulation"))
+def dae_residual(t, y, yp, *, mech: Mechanics, formulation: str):
+    """``F(t, y, y')`` of a formulation (compiled once per system and formulation)."""
+    return FORMULATIONS[formulation].residual(mech)(t, y, yp)
+
+
+@partial(jax.jit, static_argnames=("mech", "formulation"))
+def iteration_matrix(t, y, yp, cj, *, mech: Mechanics, formulation: str):
+    """``dF/dy + cj dF/dy'``, in one forward-mode pass: along ``z``, ``y'`` moves as
+    ``cj (z - y)``, so the derivative in ``z`` is the iteration matrix."""
+    F = FORMULATIONS[formulation].residual(mech)
+    return jax.jacfwd(lambda z: F(t, z, yp + cj * (z - y)))(y)
+
+
+@partial(jax.jit, static_argnames=("mech", "blocks"))
+def _consistent(t, q, v, *, mech: Mechanics, blocks: int):
+    a, lam = mech.accelerations(t, q, v)
+    lam_dot = jax.jvp(lambda s, x, u: mech.accelerations(s, x, u)[1],
+                      (t, q, v), (jnp.ones_like(t), v, a))[1]
+    zeros = jnp.zeros((blocks - 1) * mech.m)
+    return jnp.concatenate([q, v, lam, zeros]), jnp.concatenate([v, a, lam_dot, zeros])
+
+
+def consistent_values(mech: Mechanics, blocks: int, t0: float, q0: np.ndarray,
+                      v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(y0, y0')`` of either formulation from a consistent ``(q0, v0)``.
+
+    Accelerations and multipliers come from the index-1 system
+    (:meth:`Mechanics.accelerations`); ``lam'`` is its derivative along the flow,
+    ``(q', v', t') = (v, a, 1)``, so that IDA's first predictor is right in every
+    component; ``mu = mu' = 0``.
+    """
+    y0, yp0 = _consistent(jnp.asarray(t0, dtype=jnp.float64), jnp.asarray(q0),
+                          jnp.asarray(v0), mech=mech, blocks=blocks)
+    return np.asarray(y0, dtype=np.float64), np.asarray(yp0, dtype=np.float64)
+
+
+class Callbacks:
+    """The residual and Jacobian callbacks IDA calls, with their times and trial count.
+
+    ``trials`` counts step attempts as the distinct times at which IDA evaluates the
+    residual: every attempt (the first try of a step and each retry after an error-test or
+    a convergence failure, which always changes ``h``) evaluates it at its own new time;
+    IDA's difference-quotient Jacobian, when used, evaluates it at the attempt's time too.
+    """
+
+    def __init__(self, F, J):
+        self._F, self._J = F, J
+        self.reset()
+
+    def reset(self) -> None:
+        self.residual_s = 0.0
+        self.jacobian_s = 0.0
+        self.calls = 0
+        self.trials = 0
+        self._t_trial = math.nan
+
+    def residual(self, t, y, yp, res):
+        start = time.perf_counter()
+        self.calls += 1
+        if t != self._t_trial:
+            self.trials += 1
+            self._t_trial = t
+        res[:] = self._F(t, y, yp)
+        self.residual_s += time.perf_counter() - start
+
+    def jacobian(self, t, y, yp, res, cj, JJ):
+        start = time.perf_counter()
+        JJ[:, :] = self._J(t, y, yp, cj)
+        self.jacobian_s += time.perf_counter() - start
+
+
+@dataclass(frozen=True)
+class IDA(Integrator):
+    """SUNDIALS IDA (variable-order, variable-step BDF; Hindmarsh et al. 2005) on an
+    index-reduced DAE form.
+
+    ``formulation = "ggl"`` integrates the stabilised index-2 system of Gear, Gupta and
+    Leimkuhler (1985) (:func:`ggl_residual`) and enforces ``g = 0`` and
+    ``G v + g_t = 0`` at every step to the Newton tolerance; ``formulation = "index1"``
+    integrates the acceleration-level index-1 system (:func:`index1_residual`), which
+    enforces only ``d^2 g/dt^2 = 0``, so ``g`` and ``G v + g_t`` drift (reported, not
+    corrected). Order 1 to ``max_order`` (at most 5), chosen by IDA; not symplectic.
+
+    **Multipliers out of the error test.** IDA's error test and its Newton convergence test
+    use the weights ``1 / (rtol |y_i| + atol_i)``. The multipliers get
+    ``atol_i = multiplier_atol = 1e30`` by default, which makes their weights so small that
+    they never decide a step. (The binding has no switch for IDA's own option of excluding
+    algebraic variables.)
+
+    - ``ggl``: BDF's local error estimate for the index-2 variables ``lam, mu`` does not
+      shrink like that of ``q, v`` and forces step-size reductions that buy no accuracy in
+      ``(q, v)``. Verified on ``pendulum``: at rtol = 1e-8 over 20 s, ``multiplier_atol``
+      = 1e20, 1e30 and 1e40 give the same 8585 steps, 14122 residual evaluations and the
+      same final state bit for bit, so the multipliers' contribution to the weighted norms
+      is nil; with the multipliers in the test (``multiplier_atol = atol``, rtol = 1e-6,
+      2 s) IDA takes 20000 steps (19725 rejected) to reach t = 0.078, where 417 steps cover
+      the whole 2 s with them out.
+    - ``index1``: ``lam`` is an index-1 variable, which SUNDIALS' guide would keep in the
+      test; but it is determined through ``v'``, whose round-off grows like ``eps / h``, so
+      at tight tolerances its error estimate sits at that floor and drives the step down.
+      On ``pendulum`` over 2 s: at rtol = 1e-6 keeping it costs 467 steps instead of 277
+      (final error 2.9e-5 instead of 7.9e-5), but at rtol = 1e-9 it costs 24589 steps
+      instead of 708 and the final error is worse (6.2e-6 instead of 3.0e-7).
+
+    ``tests/test_ida.py`` checks both cases.
+
+    **Work counts.** The binding exposes only IDA's counts of Newton-residual and Jacobian
+    evaluations; the rest are derived exactly: ``n_steps`` counts the one-step returns,
+    ``n_rejected`` the step attempts (distinct residual times, see :class:`Callbacks`)
+    minus the steps, i.e. error-test plus convergence failures, and ``n_f_evals`` the
+    residual calls we serve. IDA's Newton solver (SUNNonlinSol_Newton) evaluates the
+    residual once per iteration and does one back-substitution per iteration, so
+    ``n_newton = n_lin_solves`` = IDA's residual count, which equals ``n_f_evals`` with our
+    Jacobian (a difference-quotient Jacobian adds one call per component of ``y`` per
+    evaluation);
+    ``n_jac_evals`` counts evaluations (and LU factorisations) of the iteration matrix.
+    ``extra["callback_s"]`` is the time spent in our residual and Jacobian callbacks
+    (``residual_s`` and ``jacobian_s`` apart); ``extra["initial_residual"]`` is
+    ``max |F(t0, y0, y0')|`` of the computed initial values.
+
+    Initial values ``(y0, y0')`` are computed from the case (:func:`consistent_values`);
+    IDA's own initial-condition calculation is not used. IDA settings that the binding
+    does not expose keep SUNDIALS' values: at most 10 error-test failures per step and a
+    Newton convergence coefficient of 0.33.
+
+    Parameters
+    ----------
+    formulation : {"ggl", "index1"}
+        The DAE form (:data:`FORMULATIONS`).
+    rtol : float
+        Relative tolerance (all components).
+    atol : float
+        Absolute tolerance on ``q`` and ``v``; NaN (the default) sets it equal to ``rtol``
+        at construction, so that a tolerance sweep scales both (the problems are O(1)).
+    multiplier_atol : float
+        Absolute tolerance on the multipliers; the default :data:`EXCLUDED` keeps them out
+        of the error test.
+    max_order : int
+        Maximum BDF order, 1..5.
+    max_steps : int
+        Internal steps allowed over the whole run; reaching it fails the run.
+    max_nonlin_iters : int
+        Newton iterations per step attempt.
+    max_conv_fails : int
+        Newton convergence failures allowed in one step.
+    first_step : float
+        Initial step; 0 lets IDA choose it from ``||y0'||``.
+    min_step, max_step : float
+        Step size bounds; 0 means none.
+    linsolver : {"dense", "lapackdense"}
+        IDA's dense direct linear solver (SUNDIALS' own or LAPACK's).
+    jacobian : {"autodiff", "difference-quotient"}
+        The iteration matrix: ours (forward-mode autodiff, the default) or IDA's
+        difference quotients of the residual (for comparison).
+    """
+
+    adaptive: ClassVar[bool] = True
+
+    formulation: str = "ggl"
+    rtol: float = 1e-6
+    atol: float = math.nan
+    multiplier_atol: float = EXCLUDED
+    max_order: int = 5
+    max_steps: int = 5_000_000
+    max_nonlin_iters: int = 4
+    max_conv_fails: int = 10
+    first_step: float = 0.0
+    min_step: float = 0.0
+    max_step: float = 0.0
+    linsolver: str = "dense"
+    jacobian: str = "autodiff"
+
+    def __post_init__(self):
+        if isinstance(self.atol, float) and math.isnan(self.atol):
+            object.__setattr__(self, "atol", self.rtol)
+
+    @property
+    def order(self) -> int:
+        return self.max_order
+
+    def check(self) -> None:
+        super().check()
+        name = type(self).__name__
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"{name}: formulation = {self.formulation!r} is not one of "
+                             f"{', '.join(FORMULATIONS)}")
+        if self.jacobian not in JACOBIANS:
+            raise ValueError(f"{name}: jacobian = {self.jacobian!r} is not one of "
+                             f"{', '.join(JACOBIANS)}")
+        if self.linsolver not in LINEAR_SOLVERS:
+            raise ValueError(f"{name}: linsolver = {self.linsolver!r} is not one of "
+                             f"{', '.join(LINEAR_SOLVERS)}")
+        if not 1 <= self.max_order <= 5:
+            raise ValueError(f"{name}: max_order = {self.max_order} must lie in 1..5")
+        for option in ("max_steps", "max_nonlin_iters", "max_conv_fails"):
+            if getattr(self, option) < 1:
+                raise ValueError(f"{name}: {option} = {getattr(self, option)} must be >= 1")
+        if not self.multiplier_atol > 0:
+            raise ValueError(f"{name}: multiplier_atol = {self.multiplier_atol} must be > 0")
+        for option in ("first_step", "min_step", "max_step"):
+            if not getattr(self, option) >= 0:
+                raise ValueError(f"{name}: {option} = {getattr(self, option)} must be >= 0")
+
+    def prepare(self, case: Case, grid: Grid):
+        self.check()
+        mech = case.mech
+        n, m = mech.n, mech.m
+        form = FORMULATIONS[self.formulation]
+        t0, t_end = float(grid.t0), float(grid.t_end)
+        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0)
+        static = dict(mech=mech, formulation=self.formulation)
+        residual = dae_residual.lower(t0, y0, yp0, **static).compile()
+        matrix = iteration_matrix.lower(t0, y0, yp0, 1.0, **static).compile()
+        r0 = np.asarray(residual(t0, y0, yp0))
+        J0 = np.asarray(matrix(t0, y0, yp0, 1.0))
+        assert r0.dtype == np.float64 and J0.dtype == np.float64, "IDA must run in float64"
+        initial_residual = float(np.max(np.abs(r0)))
+        n_mult = form.multiplier_blocks * m
+        callbacks = Callbacks(residual, matrix)
+        ida = SundialsIDA(
+            callbacks.residual,
+            jacfn=callbacks.jacobian if JACOBIANS[self.jacobian] else None,
+            rtol=self.rtol,
+            atol=np.concatenate([np.full(2 * n, self.atol),
+                                 np.full(n_mult, self.multiplier_atol)]),
+            algebraic_idx=list(range(2 * n, 2 * n + n_mult)),
+            calc_initcond=None, first_step=self.first_step, min_step=self.min_step,
+            max_step=self.max_step, linsolver=self.linsolver, max_order=self.max_order,
+            max_num_steps=self.max_steps, max_nonlin_iters=self.max_nonlin_iters,
+            max_conv_fails=self.max_conv_fails)
+        recorder = Recorder(mech, grid)
+        sampling = "every internal step (IDA one-step mode)"
+
+        def solve():
+            callbacks.reset()
+            start = ida.init_step(t0, y0, yp0)
+            if not start.success:
+                raise RuntimeError(f"IDA did not initialise: {start.message}")
+            recorder.start(t0, y0[:n], y0[n:2 * n])
+            t, y, steps, failure = t0, y0, 0, None
+            nfev = njev = 0
+            # The binding prints SUNDIALS' own error text (which says where and with what
+            # step size IDA gave up); it is captured for the failure message.
+            sundials = io.StringIO()
+            with contextlib.redirect_stdout(sundials):
+                while t < t_end:
+                    if steps >= self.max_steps:
+                        failure = (f"IDA: max_steps = {self.max_steps} internal steps reached "
+                                   f"at t = {t:.6g} before t_end = {t_end:.6g}")
+                        break
+                    out = ida.step(t_end, "onestep", t_end)
+                    nfev, njev = out.nfev, out.njev
+                    if not out.success:
+                        detail = " ".join(sundials.getvalue().split())
+                        failure = (f"IDA failed at t = {float(out.t):.6g} after {steps} steps: "
+                                   f"{out.message} (flag {out.status})"
+                                   + (f"; SUNDIALS: {detail}" if detail else ""))
+                        t, y = float(out.t), out.y
+                        break
+                    steps += 1
+                    t, y = float(out.t), out.y
+                    recorder.add(t, y[:n], y[n:2 * n])
+            counts = {"n_steps": steps, "n_rejected": callbacks.trials - steps,
+                      "n_f_evals": callbacks.calls, "n_jac_evals": njev, "n_newton": nfev,
+                      "n_lin_solves": nfev}
+            extra = {"callback_s": callbacks.residual_s + callbacks.jacobian_s,
+                     "residual_s": callbacks.residual_s, "jacobian_s": callbacks.jacobian_s,
+                     "initial_residual": initial_residual}
+            if failure is None:
+                return recorder.trajectory(OK, "", t, y[:n], y[n:2 * n], counts, sampling,
+                                           extra=extra)
+            return recorder.trajectory(FAILED, failure, t, y[:n], y[n:2 * n], counts,
+                                       sampling, fail_step=steps + 1, fail_time=t,
+                                       extra=extra)
+
+        return solve

@@ -1,0 +1,180 @@
+"""Drift bookkeeping for steps that reach the host in batches (adaptive methods).
+
+The compiled fixed-step loop (:mod:`integrators.loop`) keeps its windows by step count
+because it knows the number of steps in advance. An adaptive method does not, so the layout
+here is by time over the horizon ``[t0, t_end]`` of length ``T``:
+
+- window ``w`` (of ``W``) holds the points with ``t0 + w T/W < t <= t0 + (w+1) T/W``
+  (``t0`` itself in window 0) and keeps the maxima of ``|g|``, ``|G v + g_t|``,
+  ``|H - H0|`` and of each declared invariant's error; windows that no point reached are
+  dropped from the result;
+- sample slot ``j`` (of ``S``) keeps the first point with ``t >= t0 + j T/(S-1)``, so at
+  most ``S`` states are kept whatever the number of steps.
+
+Points arrive one at a time (IDA's one-step mode) or a batch at a time (a chunked compiled
+loop); they are measured in batches by one compiled, vectorised call and reduced at once,
+so memory is one batch plus the windows and samples.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from integrators.base import Grid, Trajectory
+from problems.mechanics import Mechanics
+
+#: Host memory one batch of points may take (bytes); fixes the batch length.
+BATCH_BYTES = 1 << 22
+
+
+def batch_length(n: int) -> int:
+    """Points per batch for ``n`` coordinates: about :data:`BATCH_BYTES`, in 64..4096."""
+    return int(min(4096, max(64, BATCH_BYTES // (8 * (2 * n + 1)))))
+
+
+def measurer(mech: Mechanics):
+    """``measure(t, q, v, E0, I0) -> (|g|, |G v + g_t|, |H - H0|, |I - I0|...)`` at one point."""
+
+    def measure(t, q, v, E0, I0):
+        return jnp.concatenate([
+            jnp.stack([
+                jnp.max(jnp.abs(mech.g(q, t)), initial=0.0),
+                jnp.max(jnp.abs(mech.vel_residual(q, v, t)), initial=0.0),
+                jnp.abs(mech.energy(q, v) - E0),
+            ]),
+            jnp.abs(mech.invariant_values(q, v) - I0),
+        ])
+
+    return measure
+
+
+@partial(jax.jit, static_argnames="mech")
+def measure_batch(t, q, v, E0, I0, *, mech: Mechanics):
+    """:func:`measurer` over a batch of points (compiled once per system and batch length)."""
+    return jax.vmap(measurer(mech), in_axes=(0, 0, 0, None, None))(t, q, v, E0, I0)
+
+
+@partial(jax.jit, static_argnames="mech")
+def reference_values(q, v, *, mech: Mechanics):
+    """Energy and declared invariants at one point (the run's ``H0`` and ``I0``)."""
+    return mech.energy(q, v), mech.invariant_values(q, v)
+
+
+class Recorder:
+    """Per-window maxima and bounded samples of the points of one run.
+
+    Build once in ``prepare`` (it compiles the batched measurement), call :meth:`start`
+    at the beginning of every solve, feed points with :meth:`add` or :meth:`extend`, and
+    finish with :meth:`trajectory`.
+    """
+
+    def __init__(self, mech: Mechanics, grid: Grid):
+        self.mech, self.grid = mech, grid
+        self.n = mech.n
+        self.rows = batch_length(mech.n)
+        self.names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+        n_inv = len(mech.system.invariants)
+        f64 = jnp.float64
+        spec = jax.ShapeDtypeStruct
+        self._measure = measure_batch.lower(
+            spec((self.rows,), f64), spec((self.rows, self.n), f64),
+            spec((self.rows, self.n), f64), spec((), f64), spec((n_inv,), f64),
+            mech=mech).compile()
+        self.span = grid.t_end - grid.t0
+        self.n_samples = max(2, grid.n_samples)
+        self._t = np.empty(self.rows)
+        self._q = np.empty((self.rows, self.n))
+        self._v = np.empty((self.rows, self.n))
+
+    def start(self, t0: float, q0: np.ndarray, v0: np.ndarray) -> None:
+        """Reset, take ``H0`` and the invariants at the initial point, and record it."""
+        E0, I0 = reference_values(jnp.asarray(q0), jnp.asarray(v0), mech=self.mech)
+        self._E0, self._I0 = np.float64(E0), np.asarray(I0, dtype=np.float64)
+        W = self.grid.n_windows
+        self.wins = np.zeros((W, len(self.names)))
+        self.hit = np.zeros(W, dtype=bool)
+        self.samp_t = np.zeros(self.n_samples)
+        self.samp_q = np.zeros((self.n_samples, self.n))
+        self.samp_v = np.zeros((self.n_samples, self.n))
+        self.filled = np.zeros(self.n_samples, dtype=bool)
+        self.count = 0
+        self.add(t0, q0, v0)
+
+    def add(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
+        """Record one point (buffered; measured when the batch is full)."""
+        i = self.count
+        self._t[i] = t
+        self._q[i] = q
+        self._v[i] = v
+        self.count = i + 1
+        if self.count == self.rows:
+            self.flush()
+
+    def extend(self, t: np.ndarray, q: np.ndarray, v: np.ndarray) -> None:
+        """Record a batch of points in time order (any length)."""
+        self.flush()
+        for start in range(0, len(t), self.rows):
+            stop = min(len(t), start + self.rows)
+            k = stop - start
+            self._t[:k], self._q[:k], self._v[:k] = t[start:stop], q[start:stop], v[start:stop]
+            self.count = k
+            self.flush()
+
+    def flush(self) -> None:
+        """Measure the buffered points and fold them into the windows and samples."""
+        k = self.count
+        if k == 0:
+            return
+        # The compiled measurement has a fixed batch length: pad with the last point,
+        # whose repeats change no maximum and no first-in-slot choice.
+        for buf in (self._t, self._q, self._v):
+            buf[k:] = buf[k - 1]
+        vals = np.asarray(self._measure(self._t, self._q, self._v, self._E0, self._I0))[:k]
+        t = self._t[:k]
+        frac = (t - self.grid.t0) / self.span
+        W = self.grid.n_windows
+        w = np.clip(np.ceil(frac * W).astype(np.int64) - 1, 0, W - 1)
+        np.maximum.at(self.wins, w, vals)
+        self.hit[w] = True
+        slots = np.clip(np.floor(frac * (self.n_samples - 1) + 1e-9).astype(np.int64),
+                        0, self.n_samples - 1)
+        first_slot, first_row = np.unique(slots, return_index=True)
+        new = ~self.filled[first_slot]
+        first_slot, first_row = first_slot[new], first_row[new]
+        self.samp_t[first_slot] = t[first_row]
+        self.samp_q[first_slot] = self._q[first_row]
+        self.samp_v[first_slot] = self._v[first_row]
+        self.filled[first_slot] = True
+        self.count = 0
+
+    def windows(self) -> dict[str, np.ndarray]:
+        """The drift series: window end times and per-window maxima (reached windows)."""
+        self.flush()
+        W = self.grid.n_windows
+        ends = self.grid.t0 + self.span * (np.arange(W) + 1) / W
+        out = {"t": ends[self.hit]}
+        out.update({name: self.wins[self.hit, i] for i, name in enumerate(self.names)})
+        return out
+
+    def samples(self) -> dict[str, np.ndarray]:
+        """The kept states, in time order."""
+        self.flush()
+        keep = self.filled
+        return {"t": self.samp_t[keep], "q": self.samp_q[keep], "v": self.samp_v[keep]}
+
+    def trajectory(self, status: str, message: str, t_final: float, q_final: np.ndarray,
+                   v_final: np.ndarray, counts: dict[str, int], sampling: str,
+                   fail_step: int | None = None, fail_time: float | None = None,
+                   extra: dict[str, float] | None = None) -> Trajectory:
+        """The :class:`Trajectory` of the recorded run."""
+        q_final = np.asarray(q_final)
+        assert q_final.dtype == np.float64, "the backend must hand over float64 states"
+        fail_time = None if fail_time is None or math.isnan(fail_time) else float(fail_time)
+        return Trajectory(status, message, float(t_final), q_final, np.asarray(v_final),
+                          self.windows(), self.samples(), dict(counts), sampling,
+                          fail_step, fail_time, dict(extra or {}))
