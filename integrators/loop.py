@@ -3,13 +3,37 @@
 The loop owns the bookkeeping so that methods only supply a pure ``step``: it measures
 ``|g|``, ``|G v + g_t|``, ``|H - H0|`` and the declared invariants at every step, keeps
 their per-window maxima and a bounded set of sampled states, counts work and stops at the
-first failed step. Everything runs inside one ``lax.while_loop``: no Python per step, and
-memory independent of the number of steps.
+first failed step. Everything runs inside compiled ``lax.while_loop``\\ s: no Python per
+step, and memory independent of the number of steps.
+
+Speed
+-----
+Under :data:`KERNEL_FLAG` XLA:CPU compiles the whole time loop, the methods' Newton loops
+included, into one native kernel. Without it XLA's runtime dispatches every fused
+operation of the loop body on its own, tens of nanoseconds each, which is most of a small
+problem's step (RATTLE on sps-receiver runs about 8 times faster with the flag: see
+``benchmarks/throughput.py``, which has ``--xla-default`` to measure without it). The
+flag is read once, when JAX creates its CPU client, so it has to be in ``XLA_FLAGS``
+before the process first uses JAX (:func:`kernel_environment`; the benchmark workers
+start with it). Results agree to round-off with and without it (bit for bit on the
+seed-sps and quick suites and for 1e6 RATTLE steps; 1e6 steps of lobatto3ab3 differ in
+the last bits). Scatter, sort and custom calls (LAPACK, which
+:func:`integrators.newton.solve` calls for systems larger than 1 x 1) inside the loop
+keep XLA from forming the kernel; such loops run as before.
+
+The steps run in *segments*: an inner loop takes the steps up to the next window end or
+sample step, whichever comes first, carrying only the method's state, the running maxima
+of the segment and the work counters; an outer loop (one iteration per segment, at most
+``n_windows + n_samples`` of them) folds the segment's maxima into its window and writes
+the sample. The per-step work thus never touches the window and sample arrays: on
+sps-receiver that made the loop a fifth faster than updating them at every step under the
+flag, and twice as fast without it.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -22,7 +46,28 @@ from problems.mechanics import Mechanics
 #: Failure codes a step can return (0 is success).
 CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite"}
 
+#: XLA:CPU option: emit any run of operations (while loops included) whose cost model
+#: reads and writes at most this many bytes per pass as one native kernel. The default,
+#: 1 kB, is below what one step of the smallest problem touches; the value here puts no
+#: practical limit on it.
+KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
+
+#: The work counters a step increments (the loop counts the steps itself).
+WORK = tuple(key for key in COUNTERS if key != "n_steps")
+
 Step = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, dict]]
+
+
+def kernel_environment(environ: dict[str, str] | None = None) -> dict[str, str]:
+    """``XLA_FLAGS`` of ``environ`` (default: this process's) with :data:`KERNEL_FLAG` added.
+
+    Returns a one-entry dict to merge into the environment of a process that is yet to
+    start, or into ``os.environ`` before this process first uses JAX.
+    """
+    flags = (os.environ if environ is None else environ).get("XLA_FLAGS", "")
+    if KERNEL_FLAG not in flags.split():
+        flags = f"{flags} {KERNEL_FLAG}".strip()
+    return {"XLA_FLAGS": flags}
 
 
 class Plan(NamedTuple):
@@ -48,6 +93,11 @@ class Plan(NamedTuple):
         return ((w + 1) * self.n_steps + self.n_windows - 1) // self.n_windows
 
 
+def put(rows: jax.Array, i: jax.Array, row: jax.Array) -> jax.Array:
+    """``rows`` with row ``i`` replaced, as an in-place dynamic update (not a scatter)."""
+    return jax.lax.dynamic_update_index_in_dim(rows, row, i, 0)
+
+
 def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
           observe: Callable[[Any], tuple[jax.Array, jax.Array]]) -> Callable[[], Trajectory]:
     """Compile the time loop and return ``solve()``.
@@ -62,9 +112,15 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         residual (for the message); ``counts`` increments of the work counters.
     observe : callable
         ``observe(carry) -> (q, v)``.
+
+    Returns
+    -------
+    solve : callable
+        ``solve() -> Trajectory``; its attribute ``compiled`` is the compiled loop (for
+        diagnostics such as whether XLA made it one kernel).
     """
     plan = Plan.make(grid, h)
-    t0 = grid.t0
+    t0, N, W, stride = grid.t0, plan.n_steps, plan.n_windows, plan.stride
     n_inv = len(mech.system.invariants)
 
     def measure(q, v, t, E0, I0):
@@ -77,23 +133,19 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             jnp.abs(mech.invariant_values(q, v) - I0),
         ])
 
-    def run(carry0):
-        q0, v0 = observe(carry0)
-        tz = jnp.asarray(t0, dtype=jnp.float64)
-        E0, I0 = mech.energy(q0, v0), mech.invariant_values(q0, v0)
-        wins = jnp.zeros((plan.n_windows, 3 + n_inv)).at[0].set(measure(q0, v0, tz, E0, I0))
-        samp_q = jnp.zeros((plan.n_samples, mech.n)).at[0].set(q0)
-        samp_v = jnp.zeros((plan.n_samples, mech.n)).at[0].set(v0)
-        counts = {k: jnp.zeros((), jnp.int64) for k in COUNTERS if k != "n_steps"}
+    def segment(k, carry, counts, stop, E0, I0):
+        """Steps ``k .. stop - 1`` or up to the first failure; maxima of their measures.
+
+        A failed step leaves ``carry`` and ``k`` at the last good step and stops the loop.
+        """
 
         def cond(state):
             k, _, code, *_ = state
-            return (k < plan.n_steps) & (code == 0)
+            return (k < stop) & (code == 0)
 
         def body(state):
-            k, carry, _, _, wins, samp_q, samp_v, counts = state
-            t = t0 + k * plan.h
-            new, code, resid, inc = step(carry, t, jnp.asarray(plan.h))
+            k, carry, _, _, peak, counts = state
+            new, code, resid, inc = step(carry, t0 + k * plan.h, jnp.asarray(plan.h))
             q, v = observe(new)
             finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
             code = jnp.where(code != 0, code, jnp.where(finite, 0, 2)).astype(jnp.int32)
@@ -101,12 +153,44 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
             k1 = k + good.astype(k.dtype)
             m = measure(q, v, t0 + k1 * plan.h, E0, I0)
-            wins = wins.at[k * plan.n_windows // plan.n_steps].max(jnp.where(good, m, 0.0))
-            slot = jnp.where(good & (k1 % plan.stride == 0), k1 // plan.stride, plan.n_samples)
-            samp_q = samp_q.at[slot].set(q, mode="drop")
-            samp_v = samp_v.at[slot].set(v, mode="drop")
-            counts = {key: counts[key] + inc.get(key, 0) for key in counts}
-            return k1, carry, code, resid, wins, samp_q, samp_v, counts
+            peak = jnp.maximum(peak, jnp.where(good, m, 0.0))
+            counts = counts + jnp.stack([jnp.asarray(inc.get(key, 0), jnp.int64)
+                                         for key in WORK])
+            return k1, carry, code, resid, peak, counts
+
+        state = (k, carry, jnp.asarray(0, jnp.int32), jnp.asarray(0.0),
+                 jnp.zeros(3 + n_inv), counts)
+        return jax.lax.while_loop(cond, body, state)
+
+    def run(carry0):
+        q0, v0 = observe(carry0)
+        tz = jnp.asarray(t0, dtype=jnp.float64)
+        E0, I0 = mech.energy(q0, v0), mech.invariant_values(q0, v0)
+        wins = jnp.zeros((W, 3 + n_inv)).at[0].set(measure(q0, v0, tz, E0, I0))
+        samp_q = jnp.zeros((plan.n_samples, mech.n)).at[0].set(q0)
+        samp_v = jnp.zeros((plan.n_samples, mech.n)).at[0].set(v0)
+        counts = jnp.zeros(len(WORK), jnp.int64)
+
+        def cond(state):
+            k, _, code, *_ = state
+            return (k < N) & (code == 0)
+
+        def body(state):
+            k, carry, _, _, wins, samp_q, samp_v, counts = state
+            # Step k lies in window w = k W // N, which ends before step ((w + 1) N + W - 1)
+            # // W; the segment also ends where the next sample is due.
+            w = k * W // N
+            stop = jnp.minimum(((w + 1) * N + W - 1) // W, (k // stride + 1) * stride)
+            k, carry, code, resid, peak, counts = segment(k, carry, counts, stop, E0, I0)
+            wins = put(wins, w, jnp.maximum(wins[w], peak))
+            # The state after k steps goes to slot k // stride when k is a multiple of the
+            # stride, where segments end; a segment that failed at its first step writes
+            # the state that slot already holds.
+            q, v = observe(carry)
+            due, slot = k % stride == 0, k // stride
+            samp_q = put(samp_q, slot, jnp.where(due, q, samp_q[slot]))
+            samp_v = put(samp_v, slot, jnp.where(due, v, samp_v[slot]))
+            return k, carry, code, resid, wins, samp_q, samp_v, counts
 
         state = (jnp.asarray(0, jnp.int64), carry0, jnp.asarray(0, jnp.int32),
                  jnp.asarray(0.0), wins, samp_q, samp_v, counts)
@@ -123,14 +207,17 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         assert q.dtype == np.float64, "the loop must run in float64"
         t_final = t0 + k * plan.h
         ends = plan.window_end_steps()
-        reached = ends <= max(k, 1)
+        # A run that fails mid-window keeps that partial window (ending at its last good
+        # step): the maxima of what was computed are part of the record.
+        last = (max(k, 1) - 1) * plan.n_windows // plan.n_steps
+        reached = np.arange(plan.n_windows) <= last
         names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
-        windows = {"t": t0 + ends[reached] * plan.h}
+        windows = {"t": t0 + np.minimum(ends[reached], k) * plan.h}
         windows.update({name: wins[reached, i] for i, name in enumerate(names)})
         n_samp = k // plan.stride + 1
         samples = {"t": t0 + np.arange(n_samp) * plan.stride * plan.h,
                    "q": samp_q[:n_samp], "v": samp_v[:n_samp]}
-        counts = {"n_steps": k, **{key: int(val) for key, val in counts.items()}}
+        counts = {"n_steps": k, **{key: int(val) for key, val in zip(WORK, counts)}}
         if code == 0:
             return Trajectory(OK, "", t_final, q, v, windows, samples, counts)
         message = (f"{CODES[code]} at step {k + 1} (t = {t_final:.6g} -> "
@@ -138,4 +225,5 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         return Trajectory(FAILED, message, t_final, q, v, windows, samples, counts,
                           fail_step=k + 1, fail_time=t_final)
 
+    solve.compiled = compiled
     return solve

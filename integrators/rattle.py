@@ -89,27 +89,25 @@ class Rattle(Integrator):
         position = position_separable if mech.separable else position_general
 
         def step(carry, t, h):
-            q0, p0, F0, lam = carry
-            G0 = mech.G(q0, t)
+            q0, p0, F0, G0, lam = carry
             p_half, q1, sol, extra_f = position(q0, p0, F0, G0, lam, t, h)
             t1 = t + h
             G1 = mech.G(q1, t1)
             F1 = F(t1, q1, p_half)
             base = p_half + 0.5 * h * F1
             MinvG1T = mech.solve_mass(q1, G1.T)
-            mu = solve(0.5 * h * G1 @ MinvG1T,
-                                  G1 @ mech.H_p(q1, base) + mech.g_t(q1, t1))
+            mu = solve(0.5 * h * G1 @ MinvG1T, G1 @ mech.H_p(q1, base) + mech.g_t(q1, t1))
             p1 = base - 0.5 * h * G1.T @ mu
             it = sol.iterations
-            # With a separable H, F1 is the next step's F0 (first same as last); the general
-            # projection evaluates F once per residual instead.
+            # G1 is the next step's G0 (first same as last), and so is F1 with a separable H;
+            # the general projection evaluates F once per residual instead.
             counts = {"n_f_evals": 1 + extra_f * (it + 1), "n_jac_evals": it + 1,
                       "n_newton": it, "n_lin_solves": it + 1}
-            return (q1, p1, F1, sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
+            return (q1, p1, F1, G1, sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
 
         q0 = jnp.asarray(case.q0)
         p0 = mech.momentum(q0, jnp.asarray(case.v0))
         t0 = jnp.asarray(grid.t0)
-        carry0 = (q0, p0, F(t0, q0, p0), jnp.zeros(m))
+        carry0 = (q0, p0, F(t0, q0, p0), mech.G(q0, t0), jnp.zeros(m))
         return march(mech, grid, self.h, carry0, step,
                      lambda carry: (carry[0], mech.H_p(carry[0], carry[1])))
