@@ -5,31 +5,55 @@ Examples::
     python -m benchmarks.run --suite quick
     python -m benchmarks.run --problems sps-receiver pendulum --integrators rattle \\
         lobatto3ab3 --h 0.1 0.05 --t-end 100 --out results/
+    python -m benchmarks.run --suite default --jobs 2 --timeout 600 --resume
     python -m benchmarks.run --list
 
-Writes ``runs.csv`` (one row per run, appended as each run finishes), appends the runs to
-the results store ``driftbench.sqlite`` and builds the report, all under ``--out``. Bad
-input (unknown names, malformed suite files, out-of-range options, inconsistent initial
-values) is reported on one line before any run starts, with exit status 2. Runs that fail
-are data: they are recorded with their status and the command still exits 0.
+Every run executes in a worker process, ``--jobs`` of them side by side (default: the
+usable cores); a run past its time limit (``--timeout``, else its suite group's or suite's
+``timeout``, else one hour; the limit covers building the case, set-up and the timed
+solves) is killed and recorded as ``timeout``, a worker that crashes is recorded as
+``error`` with its signal, and the suite goes on (:mod:`benchmarks.runner` says how wall
+times stay honest). ``--resume`` skips the runs the store already holds as finished (any
+status but ``error`` and ``timeout``) for the same problem, parameters, options, ``t_end``
+and code version. A suite's studies run after its runs.
+
+Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten in suite
+order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as
+stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
+all under ``--out``. Bad input (unknown names, malformed suite files,
+out-of-range options, inconsistent initial values) is reported on one line before any run
+starts, with exit status 2. Runs that fail are data: they are recorded with their status
+and the command still exits 0. An interrupted invocation (Ctrl-C, ``SIGTERM``) stops its
+workers, keeps every finished run and exits with status 130.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
+import dataclasses
+import math
+import signal
 import sys
 from pathlib import Path
 
 import integrators
 import problems
-from benchmarks import suites
-from benchmarks.runner import COLUMNS, RunSpec, build, execute, expand
-from benchmarks.store import Store
+from benchmarks import suites, worker
+from benchmarks.runner import InputError, RunSpec, expand, one_line, run_specs
+
+#: Exit status of bad input and of an interrupted invocation.
+EXIT_INPUT, EXIT_INTERRUPTED = 2, 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (no usage block), exit status 2."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
+    p = _Parser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
     p.add_argument("--problems", nargs="+", metavar="SPEC", help="problems, e.g. pendulum sps-ring:N=12")
     p.add_argument("--integrators", nargs="+", metavar="SPEC", help="integrator keys, e.g. rattle lobatto3ab3")
@@ -39,6 +63,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--t-end", type=float, help="end time (default: each problem's own)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed repeats of each solve (median is reported)")
+    p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
+    p.add_argument("--timeout", type=float,
+                   help="time limit of each run in seconds, overriding the suite's (inf: none)")
+    p.add_argument("--resume", action="store_true",
+                   help="skip runs the store already holds as finished (same run key)")
     p.add_argument("--no-report", action="store_true", help="do not build the report")
     p.add_argument("--list", action="store_true", help="list problems, integrators and suites")
     return p
@@ -58,60 +87,99 @@ def listing() -> str:
         lines.append(f"  {key}: " + ", ".join(f"{k}={v}" for k, v in opts.items()))
     lines.append("suites:")
     for name in suites.names():
-        lines.append(f"  {name}: {suites.load(name).description.splitlines()[0][:100]}")
+        try:
+            description = suites.load(name).description.splitlines()[0][:100]
+        except (InputError, IndexError) as exc:  # a broken suite is listed with its error
+            description = f"(cannot be loaded: {exc})" if isinstance(exc, InputError) else ""
+        lines.append(f"  {name}: {description}")
+    lines.append("studies:")
+    lines.extend(f"  {name}: {target}" for name, target in suites.STUDIES.items())
     return "\n".join(lines)
 
 
-def plan(args) -> tuple[str, list[RunSpec], int]:
-    """The suite name, its runs and the repeat count; raises on bad input."""
+#: Command-line numbers: option -> (test of one value, what each value must be).
+ARGUMENT_RANGES = {
+    "h": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "rtol": (lambda x: 0 < x < 1, "in (0, 1)"),
+    "atol": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "t_end": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "timeout": (lambda x: x > 0, "a positive number of seconds (inf for no limit)"),
+    "jobs": (lambda x: x >= 1, "at least 1"),
+    "repeats": (lambda x: x >= 1, "at least 1"),
+}
+
+
+def check_arguments(args) -> None:
+    """Refuse out-of-range numbers on the command line, naming the option."""
+    for name, (ok, must) in ARGUMENT_RANGES.items():
+        value = getattr(args, name)
+        for x in value if isinstance(value, list) else ([] if value is None else [value]):
+            if not ok(x):
+                raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
+
+
+def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None]:
+    """The suite name, its runs, the repeat count, its studies and the default time limit."""
+    check_arguments(args)
     if args.problems or args.integrators:
         if args.suite:
-            raise ValueError("give either --suite or --problems/--integrators, not both")
+            raise InputError("give either --suite or --problems/--integrators, not both")
         if not (args.problems and args.integrators):
-            raise ValueError("an ad-hoc selection needs both --problems and --integrators")
-        runs = expand(args.problems, args.integrators, args.h, args.rtol, args.atol, args.t_end)
-        return "ad-hoc", runs, args.repeats or 3
+            raise InputError("an ad-hoc selection needs both --problems and --integrators")
+        try:
+            runs = expand(args.problems, args.integrators, args.h, args.rtol, args.atol,
+                          args.t_end)
+        except ValueError as exc:
+            raise InputError(one_line(exc)) from None
+        return "ad-hoc", runs, args.repeats or 3, (), args.timeout
     suite = suites.load(args.suite or "default")
     runs = suite.runs
     if args.t_end is not None:
-        runs = [RunSpec(r.problem, r.integrator, r.h, r.rtol, r.atol, args.t_end) for r in runs]
-    return suite.name, runs, args.repeats or suite.repeats or 3
+        runs = [dataclasses.replace(r, t_end=args.t_end) for r in runs]
+    if args.timeout is not None:
+        runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
+    return (suite.name, runs, args.repeats or suite.repeats or 3, suite.studies,
+            args.timeout if args.timeout is not None else suite.timeout)
+
+
+class Interrupted(Exception):
+    """SIGINT or SIGTERM: stop the workers, keep what finished."""
+
+
+def _interrupt(signum, frame):
+    raise Interrupted(signal.Signals(signum).name)
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.list:
+        worker.load_plugins()
         print(listing())
         return 0
+    previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        name, runs, repeats = plan(args)
-        if repeats < 1:
-            raise ValueError(f"--repeats = {repeats} must be at least 1")
-        for spec in runs:  # every case and option is checked before any run starts
-            build(spec)
-    except Exception as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    args.out.mkdir(parents=True, exist_ok=True)
-    csv_path = args.out / "runs.csv"
-    store = Store(args.out / "driftbench.sqlite")
-    session = store.begin(suite=name)
-    with open(csv_path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for i, spec in enumerate(runs, 1):
-            print(f"[{i}/{len(runs)}] {spec.label()}", file=sys.stderr, flush=True)
-            record = execute(spec, repeats=repeats)
-            writer.writerow(record.row)
-            fh.flush()
-            store.add(session, record)
-            row = record.row
-            print(f"    {row['status']}: max|g| {row['max_pos_residual']}, "
-                  f"wall {row['wall_s']} s {row['message'] or ''}", file=sys.stderr, flush=True)
-    print(f"wrote {csv_path} ({len(runs)} runs)")
+        worker.load_plugins()
+        name, runs, repeats, studies, timeout = plan(args)
+        records = run_specs(runs, args.out, args.jobs, suite=name, repeats=repeats,
+                            timeout=timeout, resume=args.resume, studies=studies)
+    except InputError as exc:
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_INPUT
+    except Interrupted as exc:
+        print(f"interrupted ({exc}): the runs that finished are in {args.out}; "
+              f"run again with --resume to finish the rest", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    counts: dict[str, int] = {}
+    for record in records:
+        counts[record.row["status"]] = counts.get(record.row["status"], 0) + 1
+    summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
     if not args.no_report:
         from reports import build as build_report
-        for path in build_report(store.path, args.out):
+        for path in build_report(args.out / "driftbench.sqlite", args.out):
             print(f"wrote {path}")
     return 0
 

@@ -1,40 +1,85 @@
 """Suites as declarative TOML files under ``benchmarks/suites/``.
 
-A suite file has a ``description`` and one or more ``[[group]]`` tables; each group runs
-every combination of its lists::
+A suite file has a ``description``, optional ``repeats`` and ``timeout`` (seconds per run),
+``[[group]]`` tables of runs and ``studies``; each group runs every combination of its
+lists::
 
     description = "the seed's experiment"
+    timeout = 600
 
     [[group]]
     problems = ["sps-receiver"]
     integrators = ["lobatto3ab2"]
     h = [0.5]
     t_end = 50.0
+    timeout = 60          # this group's runs only
 
-``h`` applies to fixed-step integrators, ``rtol`` and ``atol`` to adaptive ones. A file
-that is not valid TOML, has an unknown key or a value of the wrong type is refused with a
-message that names the file, the line and what is wrong.
+``h`` applies to fixed-step integrators, ``rtol`` and ``atol`` to adaptive ones. A group's
+``timeout`` overrides the suite's, and ``--timeout`` on the command line overrides both.
+
+``studies = ["flexible-modal"]`` names studies that are not integrator runs: each is a
+function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in :data:`STUDIES`
+(never taken from the file), run after the suite's runs. A suite may hold only studies.
+
+A file that is not valid TOML, has an unknown key, a value of the wrong type or out of
+range, or names an unknown problem, integrator or study is refused with one line that
+names the file, the line and what is wrong.
 """
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.runner import RunSpec, expand
-from problems import suggest
+import problems
+from benchmarks.runner import InputError, RunSpec, expand
+from problems import SpecError, suggest
 
 SUITE_DIR = Path(__file__).parent / "suites"
 
-#: Allowed keys and their types: top level, and per group.
-TOP_KEYS = {"description": str, "group": list, "repeats": int}
-GROUP_KEYS = {"problems": list, "integrators": list, "h": list, "rtol": list, "atol": list,
-              "t_end": float}
+#: Studies a suite may name: name -> "module:function" with ``function(out) -> dict``.
+STUDIES: dict[str, str] = {
+    "flexible-modal": "benchmarks.flexible_modal:run",
+}
+
+NUMBER, STRINGS, NUMBERS = "a number", "a list of strings", "a list of numbers"
+#: Allowed keys and what they hold: top level, and per group.
+TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
+            "repeats": "a whole number", "timeout": NUMBER, "studies": STRINGS}
+GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
+              "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
 
 
-class SuiteError(ValueError):
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+#: Type checks by the description of what a key holds.
+TYPE_CHECKS = {
+    "a string": lambda v: isinstance(v, str),
+    "an array of [[group]] tables": lambda v: isinstance(v, list)
+    and all(isinstance(g, dict) for g in v),
+    "a whole number": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    NUMBER: _is_number,
+    STRINGS: lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+    NUMBERS: lambda v: isinstance(v, list) and all(_is_number(x) for x in v),
+}
+
+#: Range checks: key -> (test of one value, what the value must be).
+RANGES = {
+    "h": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "rtol": (lambda x: 0 < x < 1, "in (0, 1)"),
+    "atol": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "t_end": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "timeout": (lambda x: x > 0, "a positive number of seconds (inf for no limit)"),
+    "repeats": (lambda x: x >= 1, "at least 1"),
+}
+
+
+class SuiteError(InputError):
     """A suite that does not exist or cannot be read."""
 
 
@@ -44,6 +89,8 @@ class Suite:
     description: str
     runs: list[RunSpec]
     repeats: int | None = None
+    timeout: float | None = None
+    studies: tuple[str, ...] = field(default=())
 
 
 def names() -> list[str]:
@@ -51,10 +98,39 @@ def names() -> list[str]:
     return sorted(p.stem for p in SUITE_DIR.glob("*.toml"))
 
 
-def _line_of(text: str, key: str, occurrence: int = 0) -> int:
-    hits = [text[: m.start()].count("\n") + 1
-            for m in re.finditer(rf"^\s*{re.escape(key)}\s*=", text, re.M)]
-    return hits[min(occurrence, len(hits) - 1)] if hits else 0
+def study_target(name: str) -> str:
+    """The ``module:function`` of a registered study."""
+    if name not in STUDIES:
+        raise SuiteError(f"unknown study {name!r}{suggest(name, STUDIES)}; "
+                         f"known: {', '.join(sorted(STUDIES))}")
+    return STUDIES[name]
+
+
+def _group_spans(text: str) -> list[tuple[int, int]]:
+    """First and last line of each ``[[group]]`` block (1-based)."""
+    lines = text.splitlines()
+    heads = [i + 1 for i, line in enumerate(lines) if re.match(r"\s*\[\[\s*group\s*\]\]", line)]
+    ends = []
+    for k, head in enumerate(heads):
+        stop = heads[k + 1] - 1 if k + 1 < len(heads) else len(lines)
+        for j in range(head, stop):  # a later [table] header ends the group too
+            if re.match(r"\s*\[", lines[j]):
+                stop = j
+                break
+        ends.append(stop)
+    return list(zip(heads, ends))
+
+
+def _line_of(text: str, key: str, span: tuple[int, int] | None = None) -> int:
+    """Line of ``key = ...`` (within ``span`` if given; top level: before any table)."""
+    for i, line in enumerate(text.splitlines(), 1):
+        if span is not None and not span[0] <= i <= span[1]:
+            continue
+        if span is None and re.match(r"\s*\[", line):
+            break
+        if re.match(rf"\s*{re.escape(key)}\s*=", line):
+            return i
+    return span[0] if span else 0
 
 
 def load(name: str) -> Suite:
@@ -65,53 +141,79 @@ def load(name: str) -> Suite:
         if not path.exists():
             raise SuiteError(f"unknown suite {name!r}{suggest(name, names())}; "
                              f"known: {', '.join(names())}")
-    if not path.exists():
+    if not path.is_file():
         raise SuiteError(f"suite file {path} does not exist")
-    text = path.read_text()
     try:
+        text = path.read_text(encoding="utf-8")
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SuiteError(f"{path}: invalid TOML: {exc}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        at = re.search(r"\(at line (\d+), column \d+\)", str(exc))
+        raise SuiteError(f"{path}:{at.group(1)}: invalid TOML: {exc}" if at else
+                         f"{path}: invalid TOML: {exc}") from None
 
-    def fail(key: str, what: str, occurrence: int = 0):
-        line = _line_of(text, key, occurrence)
-        where = f"{path}:{line}" if line else str(path)
-        raise SuiteError(f"{where}: {what}")
+    def fail(line: int, what: str):
+        raise SuiteError(f"{path}:{line}: {what}" if line else f"{path}: {what}")
 
-    for key, value in data.items():
-        if key not in TOP_KEYS:
-            fail(key, f"unknown key {key!r}{suggest(key, TOP_KEYS)}; allowed: {', '.join(TOP_KEYS)}")
-        if not isinstance(value, TOP_KEYS[key]):
-            fail(key, f"{key!r} must be a {TOP_KEYS[key].__name__}")
+    def check(table: dict, allowed: dict, where: str, line_of) -> None:
+        for key, value in table.items():
+            if key not in allowed:
+                fail(line_of(key), f"unknown key {key!r}{where}{suggest(key, allowed)}; "
+                                   f"allowed: {', '.join(allowed)}")
+            if not TYPE_CHECKS[allowed[key]](value):
+                fail(line_of(key), f"{key!r}{where} must be {allowed[key]}, "
+                                   f"not {type(value).__name__} {value!r}")
+            if key in RANGES:
+                ok, must = RANGES[key]
+                bad = [x for x in (value if isinstance(value, list) else [value]) if not ok(x)]
+                if bad:
+                    fail(line_of(key), f"{key!r}{where} = {bad[0]!r} must be {must}")
+            if key in ("problems", "integrators", "studies") and not value:
+                fail(line_of(key), f"{key!r}{where} is an empty list")
+
+    check(data, TOP_KEYS, "", lambda key: _line_of(text, key))
     groups = data.get("group", [])
-    if not groups:
-        raise SuiteError(f"{path}: no [[group]] table: a suite needs at least one")
+    studies = tuple(data.get("studies", ()))
+    for study in studies:
+        if study not in STUDIES:
+            fail(_line_of(text, "studies"), f"unknown study {study!r}{suggest(study, STUDIES)}; "
+                                            f"known: {', '.join(sorted(STUDIES))}")
+    if not groups and not studies:
+        fail(0, "no [[group]] table and no studies: a suite needs at least one")
+    spans = _group_spans(text)
+    known = problems.names()
     runs: list[RunSpec] = []
-    seen: dict[str, int] = {}
-    for group in groups:
-        for key, value in group.items():
-            occurrence = seen.get(key, 0)
-            seen[key] = occurrence + 1
-            if key not in GROUP_KEYS:
-                fail(key, f"unknown key {key!r} in [[group]]{suggest(key, GROUP_KEYS)}; "
-                          f"allowed: {', '.join(GROUP_KEYS)}", occurrence)
-            want = GROUP_KEYS[key]
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) \
-                if want is float else isinstance(value, want)
-            if want is list and ok:
-                item_types = (str,) if key in ("problems", "integrators") else (int, float)
-                ok = all(isinstance(v, item_types) and not isinstance(v, bool) for v in value)
-            if not ok:
-                fail(key, f"{key!r} has the wrong type: expected "
-                          f"{'a number' if want is float else 'a list'}"
-                          f"{' of strings' if key in ('problems', 'integrators') else ''}"
-                          f"{' of numbers' if key in ('h', 'rtol', 'atol') else ''}", occurrence)
+    for k, group in enumerate(groups):
+        span = spans[k] if k < len(spans) and len(spans) == len(groups) else None
+        where = f" in [[group]] {k + 1}"
+
+        def line_of(key, span=span):
+            return _line_of(text, key, span) if span else _line_of(text, key)
+
+        check(group, GROUP_KEYS, where, line_of)
         for required in ("problems", "integrators"):
             if required not in group:
-                raise SuiteError(f"{path}: a [[group]] lacks the required key {required!r}")
-        runs.extend(expand(group["problems"], group["integrators"],
-                           [float(x) for x in group.get("h", [])],
-                           [float(x) for x in group.get("rtol", [])],
-                           [float(x) for x in group.get("atol", [])],
-                           float(group["t_end"]) if "t_end" in group else None))
-    return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"))
+                fail(span[0] if span else 0, f"[[group]] {k + 1} lacks the required key "
+                                             f"{required!r}")
+        for spec in group["problems"]:
+            problem = problems.split_spec(spec)[0]
+            if problem not in known:
+                fail(line_of("problems"), f"unknown problem {problem!r}{where}"
+                                          f"{suggest(problem, known)}; known: {', '.join(known)}")
+        origin = f"{path}:{span[0]} ([[group]] {k + 1})" if span else f"{path} ([[group]] {k + 1})"
+        try:
+            runs.extend(expand(group["problems"], group["integrators"],
+                               [float(x) for x in group.get("h", [])],
+                               [float(x) for x in group.get("rtol", [])],
+                               [float(x) for x in group.get("atol", [])],
+                               float(group["t_end"]) if "t_end" in group else None,
+                               float(group["timeout"]) if "timeout" in group else None,
+                               origin))
+        except SpecError as exc:
+            fail(line_of("integrators"), f"[[group]] {k + 1}: {exc}")
+    timeout = float(data["timeout"]) if "timeout" in data else None
+    if timeout is not None:
+        runs = [r if r.timeout is not None else
+                RunSpec(r.problem, r.integrator, r.h, r.rtol, r.atol, r.t_end, timeout, r.origin)
+                for r in runs]
+    return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
+                 timeout, studies)

@@ -99,8 +99,11 @@ class Integrator:
         """Validate the options; raise ``ValueError`` naming the bad one."""
         h = getattr(self, "h", None)
         if h is not None and not (np.isfinite(h) and h > 0):
-            raise ValueError(f"{type(self).__name__}: h = {h} must be positive")
-        for name in ("rtol", "atol"):
+            raise ValueError(f"{type(self).__name__}: h = {h} must be positive and finite")
+        for name in ("rtol", "atol", "newton_tol"):
             tol = getattr(self, name, None)
             if tol is not None and not (0 < tol < 1):
                 raise ValueError(f"{type(self).__name__}: {name} = {tol} must lie in (0, 1)")
+        limit = getattr(self, "newton_max_iter", None)
+        if limit is not None and not limit >= 1:
+            raise ValueError(f"{type(self).__name__}: newton_max_iter = {limit} must be >= 1")

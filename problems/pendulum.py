@@ -56,8 +56,9 @@ def exact_solution(t: float, L: float, gravity: float, theta0: float):
 def pendulum(L: float = 1.0, mass: float = 1.0, gravity: float = 9.81,
              theta0: float = float(np.pi / 2), t_end: float = 2000.0) -> Case:
     """IFToMM A01 pendulum; ``theta0`` is the release angle from the downward vertical."""
-    if L <= 0 or mass <= 0:
-        raise ValueError(f"pendulum: L = {L} and mass = {mass} must be positive")
+    if not (0 < L < np.inf and 0 < mass < np.inf and np.isfinite(gravity)):
+        raise ValueError(f"pendulum: L = {L} and mass = {mass} must be positive and finite, "
+                         f"gravity = {gravity} finite")
     system = System(
         n=2, m=1,
         mass=np.full(2, mass),

@@ -45,8 +45,9 @@ def bar_length_squared(R: float, r: float) -> float:
 def sps_receiver(M: float = 0.8, m: float = 1.0, w: float = 1.0, R0: float = 1.0,
                  r0: float = 0.8, t_end: float = 50.0) -> Case:
     """The seed's reduced receiver model, released from rest at ``(R0, r0)``."""
-    if M <= 0 or m <= 0:
-        raise ValueError(f"sps-receiver: masses M = {M}, m = {m} must be positive")
+    if not (0 < M < np.inf and 0 < m < np.inf and np.isfinite(w)):
+        raise ValueError(f"sps-receiver: masses M = {M}, m = {m} must be positive and finite, "
+                         f"w = {w} finite")
     l2 = bar_length_squared(R0, r0)
     system = System(
         n=2, m=1,

@@ -1,0 +1,143 @@
+"""The batch runner: isolation, fault injection, parallel runs, determinism, resume keys.
+
+The faulty integrators come from ``tests/plugins/faulty.py``, which the runner's parent and
+workers load when ``DRIFTBENCH_TEST_PLUGINS`` names it.
+"""
+
+from __future__ import annotations
+
+import io
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+import integrators
+from benchmarks import suites, worker
+from benchmarks.runner import (ACCURACY_COLUMNS, CODE_VERSION_ENV, InputError, RunSpec,
+                               run_specs, validate)
+from benchmarks.store import load_artifacts, load_runs
+
+PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
+
+
+@pytest.fixture(autouse=True)
+def plugins(monkeypatch):
+    monkeypatch.setenv(worker.PLUGIN_ENV, str(PLUGIN))
+    # Concurrent edits of the working tree must not change run keys within a test.
+    monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
+    worker.load_plugins()
+
+
+def accuracy(record) -> dict:
+    return {c: record.row[c] for c in ACCURACY_COLUMNS}
+
+
+HEALTHY = [RunSpec("pendulum", "rattle", 0.05, t_end=1.0),
+           RunSpec("sps-receiver", "lobatto3ab3", 0.1, t_end=2.0)]
+
+
+def test_faults_are_contained_and_healthy_runs_match_a_serial_run(tmp_path):
+    faulty = [RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
+              RunSpec("pendulum", "test-kill", 0.1, t_end=1.0),
+              RunSpec("pendulum", "test-abort", 0.1, t_end=1.0),
+              RunSpec("pendulum", "test-raise", 0.1, t_end=1.0),
+              RunSpec("pendulum", "test-nan", 0.1, t_end=1.0)]
+    specs = [faulty[0], HEALTHY[0], *faulty[1:], HEALTHY[1]]
+    log = io.StringIO()
+    records = run_specs(specs, tmp_path / "mixed", jobs=2, timeout=120.0, log=log,
+                        studies=["test-study", "test-study-raise"])
+    status = {r.row["integrator"]: r.row["status"] for r in records}
+    assert status == {"test-hang": "timeout", "rattle": "ok", "test-kill": "error",
+                      "test-abort": "error", "test-raise": "error", "test-nan": "failed",
+                      "lobatto3ab3": "ok"}
+    message = {r.row["integrator"]: r.row["message"] for r in records}
+    # 15 s: building a case in a fresh worker takes seconds on a loaded machine.
+    assert "time limit of 15 s during solve" in message["test-hang"]
+    assert "SIGKILL" in message["test-kill"] and "SIGABRT" in message["test-abort"]
+    assert "injected fault in solve" in message["test-raise"]
+    assert "not finite" in message["test-nan"]
+    # One log line per run and per study.
+    assert sum(line.startswith("[") for line in log.getvalue().splitlines()) == len(specs) + 2
+
+    # Every run, faulty or not, is stored once with its key; the file is consistent.
+    db = tmp_path / "mixed" / "driftbench.sqlite"
+    with sqlite3.connect(db) as con:
+        assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    stored = load_runs(db)
+    assert sorted(stored["integrator"]) == sorted(s.integrator for s in specs)
+    assert stored["run_key"].notna().all()
+    assert stored["timing_note"].str.contains("pinned|share cores").all()
+
+    # The study that works stored its table and figure; the one that raised its message.
+    art = load_artifacts(db)
+    got = {(a.section, a.name, a.kind) for a in art.itertuples()}
+    assert {("test-study", "numbers", "table"), ("test-study", "curve", "figure"),
+            ("test-study-raise", "error", "table")} <= got
+    error = art[art.section == "test-study-raise"].content.iloc[0]
+    assert "injected fault in a study" in error
+
+    # The healthy runs beside the faults equal, bit for bit, a serial run of them alone:
+    # same code, same thread settings, so nothing may differ.
+    alone = run_specs(HEALTHY, tmp_path / "alone", jobs=1, log=None)
+    beside = [r for r in records if r.row["status"] == "ok"]
+    assert [accuracy(r) for r in beside] == [accuracy(r) for r in alone]
+
+
+def determinism_specs() -> list[RunSpec]:
+    """Every fixed-step method at one step size, and IDA at a fixed tolerance if present."""
+    specs = [RunSpec("pendulum", key, 0.02, t_end=1.0) for key in integrators.keys()
+             if not key.startswith("test-") and not integrators.cls_of(key).adaptive]
+    if "ida-ggl" in integrators.REGISTRY:
+        specs.append(RunSpec("pendulum", "ida-ggl", rtol=1e-8, atol=1e-8, t_end=1.0))
+    return specs
+
+
+def test_the_same_runs_twice_give_bit_identical_accuracy(tmp_path):
+    # Each run twice in one batch, in whichever worker is free (the fault test above
+    # compares runs made in different invocations).
+    specs = determinism_specs()
+    records = run_specs(specs + specs, tmp_path, jobs=2, log=None)
+    first, second = records[:len(specs)], records[len(specs):]
+    for spec, a, b in zip(specs, first, second):
+        assert a.row["status"] == "ok", (spec, a.row["message"])
+        # Deterministic code on the same machine: any difference at all is a defect.
+        assert accuracy(a) == accuracy(b), spec.integrator
+        assert a.row["run_key"] == b.row["run_key"]
+
+
+def test_bad_input_raises_before_anything_is_written(tmp_path):
+    out = tmp_path / "never"
+    with pytest.raises(InputError, match="unknown problem 'pendulm'"):
+        run_specs([RunSpec("pendulm", "rattle", 0.1)], out, jobs=1, log=None)
+    with pytest.raises(InputError, match="jobs = 0"):
+        run_specs(HEALTHY, out, jobs=0, log=None)
+    with pytest.raises(InputError, match="unknown study"):
+        run_specs(HEALTHY, out, jobs=1, log=None, studies=["flexible-modl"])
+    assert not out.exists()
+
+
+def test_run_key_names_exactly_what_determines_results():
+    base = RunSpec("pendulum", "rattle", 0.1, t_end=1.0)
+    limit = integrators.make("rattle").options()["newton_max_iter"]
+    same = [base, RunSpec("pendulum:L=1.0", f"rattle:newton_max_iter={limit}", 0.1, t_end=1.0),
+            RunSpec("pendulum", "rattle", 0.1, t_end=1.0, timeout=5.0)]
+    different = [RunSpec("pendulum", "rattle", 0.05, t_end=1.0),
+                 RunSpec("pendulum:L=2", "rattle", 0.1, t_end=1.0),
+                 RunSpec("pendulum", f"rattle:newton_max_iter={limit + 1}", 0.1, t_end=1.0),
+                 RunSpec("pendulum", "rattle", 0.1, t_end=2.0),
+                 RunSpec("pendulum", "lobatto3ab2", 0.1, t_end=1.0)]
+    keys = [f["run_key"] for f in validate(same + different, "v1")]
+    assert len(set(keys[:len(same)])) == 1
+    assert len(set(keys)) == 1 + len(different)
+    assert validate([base], "v2")[0]["run_key"] != keys[0]
+
+
+def test_suite_timeouts_group_overrides_suite(tmp_path):
+    path = tmp_path / "t.toml"
+    path.write_text('timeout = 100\n\n[[group]]\nproblems = ["pendulum"]\n'
+                    'integrators = ["rattle"]\nh = [0.1]\n\n[[group]]\nproblems = ["pendulum"]\n'
+                    'integrators = ["rattle"]\nh = [0.2]\ntimeout = 7\n')
+    suite = suites.load(str(path))
+    assert [r.timeout for r in suite.runs] == [100.0, 7.0]
+    assert suite.runs[1].origin.startswith(f"{path}:8")

@@ -1,0 +1,135 @@
+"""Bad input is refused before any run starts: one line naming what and where, exit status 2.
+
+Every case runs the command line in-process (``benchmarks.run.main``) and checks that the
+error is one line starting with ``error:``, holds the expected words, shows no traceback
+and that nothing was written under ``--out``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from benchmarks import run, worker
+from benchmarks.runner import CODE_VERSION_ENV
+
+PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
+GOOD = ["--problems", "pendulum", "--integrators", "rattle"]
+
+#: (id, arguments, words the message must hold)
+COMMAND_LINES = [
+    ("unknown-problem", ["--problems", "pendulm", "--integrators", "rattle"],
+     ["unknown problem 'pendulm'", "did you mean pendulum"]),
+    ("unknown-integrator", ["--problems", "pendulum", "--integrators", "ratle"],
+     ["unknown integrator 'ratle'", "did you mean rattle"]),
+    ("unknown-suite", ["--suite", "seed-spz"], ["unknown suite 'seed-spz'", "seed-sps"]),
+    ("unknown-parameter", ["--problems", "pendulum:Lx=2", "--integrators", "rattle"],
+     ["problem 'pendulum' has no parameter 'Lx'", "did you mean L"]),
+    ("parameter-type", ["--problems", "pendulum:L=abc", "--integrators", "rattle"],
+     ["parameter 'L'", "'abc' is not a valid float"]),
+    ("malformed-spec", ["--problems", "pendulum:L", "--integrators", "rattle"],
+     ["'pendulum:L'", "not of the form key=value"]),
+    ("unknown-option", ["--problems", "pendulum", "--integrators", "rattle:newton_tl=1e-10"],
+     ["integrator 'rattle' has no option 'newton_tl'", "did you mean newton_tol"]),
+    ("h-zero", [*GOOD, "--h", "0"], ["--h 0", "positive"]),
+    ("h-negative", [*GOOD, "--h", "0.1", "-0.05"], ["--h -0.05", "positive"]),
+    ("h-nan", [*GOOD, "--h", "nan"], ["--h nan", "finite"]),
+    ("h-not-a-number", [*GOOD, "--h", "abc"], ["--h", "invalid float value: 'abc'"]),
+    ("t-end-negative", [*GOOD, "--t-end", "-5"], ["--t-end -5", "positive"]),
+    ("rtol-above-one", [*GOOD, "--rtol", "1.5"], ["--rtol 1.5", "(0, 1)"]),
+    ("stages-unsupported", ["--problems", "pendulum", "--integrators", "lobatto3ab3:stages=9"],
+     ["stages = 9", "2..6"]),
+    ("newton-iterations", ["--problems", "pendulum", "--integrators", "rattle:newton_max_iter=0"],
+     ["newton_max_iter = 0", ">= 1"]),
+    ("modes-below-one", ["--problems", "flexible-spacecraft:n_modes=-1", "--integrators",
+                         "rattle"], ["n_modes = -1"]),
+    ("timeout-negative", [*GOOD, "--timeout", "-1"], ["--timeout -1", "positive"]),
+    ("jobs-zero", [*GOOD, "--jobs", "0"], ["--jobs 0", "at least 1"]),
+    ("repeats-zero", [*GOOD, "--repeats", "0"], ["--repeats 0", "at least 1"]),
+    ("mass-negative", ["--problems", "pendulum:mass=-1", "--integrators", "rattle"],
+     ["pendulum", "mass = -1.0", "positive"]),
+    ("initial-values-not-finite", ["--problems", "pendulum:theta0=nan", "--integrators", "rattle"],
+     ["pendulum", "initial values are not finite"]),
+    ("initial-values-inconsistent", ["--problems", "test-offset-pendulum:dx=0.01",
+                                     "--integrators", "rattle"],
+     ["inconsistent initial values", "|g(q0)| = 2.010e-02"]),
+    ("suite-and-problems", ["--suite", "seed-sps", *GOOD], ["either --suite or --problems"]),
+    ("problems-alone", ["--problems", "pendulum"], ["needs both --problems and --integrators"]),
+]
+
+#: (id, suite file text, line the message must name (0: none), words it must hold)
+SUITE_FILES = [
+    ("invalid-toml", 'description = "x"\n[[group]\nproblems = ["pendulum"]\n', 2,
+     ["invalid TOML"]),
+    ("unknown-key", '[[group]]\nproblems = ["pendulum"]\nintgrators = ["rattle"]\n', 3,
+     ["unknown key 'intgrators' in [[group]] 1", "did you mean integrators"]),
+    ("wrong-type", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\nh = "0.1"\n', 4,
+     ["'h' in [[group]] 1 must be a list of numbers"]),
+    ("h-out-of-range", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                       'h = [0.1, -0.2]\n', 4, ["-0.2", "positive"]),
+    ("unknown-integrator-in-second-group",
+     '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n\n'
+     '[[group]]\nproblems = ["pendulum"]\nintegrators = ["lobato3ab3"]\n', 7,
+     ["unknown integrator 'lobato3ab3'", "[[group]] 2", "lobatto3ab3"]),
+    ("unknown-problem", '[[group]]\nproblems = ["pendulum", "sps-reciever"]\n'
+                        'integrators = ["rattle"]\n', 2,
+     ["unknown problem 'sps-reciever'", "sps-receiver"]),
+    ("missing-integrators", 'description = "x"\n\n[[group]]\nproblems = ["pendulum"]\n', 3,
+     ["lacks the required key 'integrators'"]),
+    ("unknown-study", 'studies = ["flexible-modl"]\n', 1,
+     ["unknown study 'flexible-modl'", "flexible-modal"]),
+    ("timeout-negative", 'timeout = -3\n[[group]]\nproblems = ["pendulum"]\n'
+                         'integrators = ["rattle"]\n', 1, ["timeout", "-3", "positive"]),
+    ("repeats-boolean", 'repeats = true\n[[group]]\nproblems = ["pendulum"]\n'
+                        'integrators = ["rattle"]\n', 1, ["'repeats' must be a whole number"]),
+    ("empty", 'description = "nothing"\n', 0, ["no [[group]] table and no studies"]),
+    ("bad-parameter-in-group", '[[group]]\nproblems = ["pendulum:L=-1"]\n'
+                               'integrators = ["rattle"]\nh = [0.1]\n', 1,
+     ["([[group]] 1)", "pendulum", "L = -1.0", "positive"]),
+]
+
+
+@pytest.fixture(autouse=True)
+def plugins(monkeypatch):
+    monkeypatch.setenv(worker.PLUGIN_ENV, str(PLUGIN))
+    monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
+
+
+def refused(argv, capsys) -> str:
+    """Run the command line; assert it was refused on one line; return that line."""
+    try:
+        code = run.main(argv)
+    except SystemExit as exc:  # argparse's own errors leave through SystemExit
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+@pytest.mark.parametrize("argv, words", [c[1:] for c in COMMAND_LINES],
+                         ids=[c[0] for c in COMMAND_LINES])
+def test_bad_command_lines_are_refused_on_one_line(argv, words, tmp_path, capsys):
+    out = tmp_path / "out"
+    line = refused([*argv, "--out", str(out), "--no-report"], capsys)
+    for word in words:
+        assert word in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("text, line_no, words", [c[1:] for c in SUITE_FILES],
+                         ids=[c[0] for c in SUITE_FILES])
+def test_bad_suite_files_are_refused_with_file_and_line(text, line_no, words, tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    line = refused(["--suite", str(path), "--out", str(out), "--no-report"], capsys)
+    assert str(path) in line
+    if line_no:
+        assert f"{path}:{line_no}" in line
+    for word in words:
+        assert word in line
+    assert not out.exists()
