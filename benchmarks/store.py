@@ -1,33 +1,67 @@
 """The embedded results store: SQLite (WAL), appended to by every invocation.
 
-Schema (version 1):
+Schema (version 2):
 
 - ``sessions``: one row per invocation, with provenance (suite, start time, git commit and
   dirty flag, machine, Python and package versions);
-- ``runs``: one row per run with every ``runs.csv`` column and its session;
+- ``runs``: one row per run with every ``runs.csv`` column, its session, the time it was
+  recorded, the integrator's nominal order (for convergence plots) and whether the problem
+  is declared chaotic (``System.sensitive``);
 - ``series``: the windowed drift and energy series and sampled states of each run, one row
-  per named array, stored as raw little-endian float64 bytes.
+  per named array (``window:pos``, ``sample:q``...), stored as raw little-endian float64
+  bytes with the array's shape;
+- ``artifacts``: tables and SVG figures of study suites that produce no runs, by session,
+  report section and name.
 
 Each run is committed on its own, so a run that finished is never lost when a later one
-crashes or the process is killed.
+crashes or the process is killed. Columns that ``runs.csv`` gains later are added to an
+existing file when a writer opens it; older schema versions are migrated (in place by a
+writer, in memory by a reader, which never modifies the file).
+
+Reading goes through pandas: :func:`load_runs`, :func:`load_series`, :func:`load_artifacts`.
+Reading imports neither JAX nor an integrator, so the report stage stays light.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import platform
 import sqlite3
 import subprocess
 import time
 from importlib import metadata
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+import pandas as pd
 
-from benchmarks.runner import COLUMNS, Record
+if TYPE_CHECKING:
+    from benchmarks.runner import Record
 
-SCHEMA_VERSION = 1
-PACKAGES = ("numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae", "pandas", "matplotlib")
+SCHEMA_VERSION = 2
+STORE_NAME = "driftbench.sqlite"
+PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
+            "pandas", "matplotlib")
+#: Statuses of runs that a resumed suite must run again.
+UNFINISHED = ("error", "timeout")
+#: Session columns joined onto every run by :func:`load_runs` (stored name -> loaded name).
+SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha": "commit",
+                   "dirty": "dirty", "machine": "machine", "python": "python",
+                   "versions": "versions", "timing_note": "timing_note"}
+
+
+#: Columns that hold text; every other column whose values are numbers (or missing) is
+#: read as float64, so a metric that no run measured is NaN, not None.
+TEXT_COLUMNS = {"problem", "integrator", "status", "message", "q_final", "v_final",
+                "invariant_errors", "sampling", "options", "params", "run_key",
+                *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
+
+
+class StoreError(RuntimeError):
+    """A store that cannot be opened: missing, or written by newer code."""
 
 
 def provenance() -> dict[str, object]:
@@ -47,68 +81,334 @@ def provenance() -> dict[str, object]:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             versions[name] = None
+    cpu = f"{os.cpu_count()} CPUs"
     return {
         "commit": git("rev-parse", "HEAD") or None,
         "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-        "machine": f"{platform.node()} {platform.machine()} {platform.processor()}".strip(),
+        "machine": " ".join(x for x in (platform.node(), platform.system(),
+                                        platform.machine(), cpu) if x),
         "python": platform.python_version(),
         "versions": json.dumps(versions),
     }
 
 
+def nominal_order(integrator_spec: str) -> int | None:
+    """The nominal order the integrator of a spec declares (``Integrator.order``), if any."""
+    import integrators  # the writer runs integrators anyway; readers never get here
+
+    try:
+        return integrators.make(integrator_spec).order
+    except Exception:  # an unknown or unbuildable spec is recorded as an error run
+        return None
+
+
+def sensitive(problem_spec: str) -> bool | None:
+    """Whether the problem of a spec is declared chaotic (``System.sensitive``), if known."""
+    import problems
+
+    try:
+        return bool(problems.make(problem_spec).system.sensitive)
+    except Exception:  # a problem that does not build is recorded as an error run
+        return None
+
+
+# --------------------------------------------------------------------------- schema
+
+def _create(db: sqlite3.Connection, columns) -> None:
+    """Create the current schema in an empty database."""
+    cols = ", ".join(f'"{c}"' for c in columns)
+    db.executescript(f"""
+        CREATE TABLE sessions (
+            id INTEGER PRIMARY KEY, suite TEXT, started REAL, commit_sha TEXT,
+            dirty INTEGER, machine TEXT, python TEXT, versions TEXT, timing_note TEXT);
+        CREATE TABLE runs (
+            id INTEGER PRIMARY KEY, session INTEGER REFERENCES sessions(id),
+            recorded REAL, nominal_order REAL, sensitive INTEGER, {cols});
+        CREATE TABLE series (
+            run INTEGER REFERENCES runs(id), name TEXT, data BLOB, shape TEXT,
+            PRIMARY KEY (run, name));
+        CREATE TABLE artifacts (
+            id INTEGER PRIMARY KEY, session INTEGER REFERENCES sessions(id),
+            section TEXT, name TEXT, kind TEXT, content TEXT, created REAL,
+            UNIQUE (session, section, name, kind));
+        PRAGMA user_version = {SCHEMA_VERSION};
+    """)
+
+
+def _v1_to_v2(db: sqlite3.Connection) -> None:
+    """Version 1 -> 2: series shapes; record time, nominal order and sensitivity of runs;
+    the timing note of sessions; artifacts.
+
+    Version 1 stored every array flat, so the 2-D samples ``sample:q`` and ``sample:v``
+    get their shape back from the length of the run's ``sample:t``. Rows of version 1
+    have no record time, nominal order or sensitivity (NULL): the migration does not
+    rebuild integrators or problems.
+    """
+    db.executescript("""
+        ALTER TABLE series ADD COLUMN shape TEXT;
+        ALTER TABLE runs ADD COLUMN recorded REAL;
+        ALTER TABLE runs ADD COLUMN nominal_order REAL;
+        ALTER TABLE runs ADD COLUMN sensitive INTEGER;
+        ALTER TABLE sessions ADD COLUMN timing_note TEXT;
+        CREATE TABLE artifacts (
+            id INTEGER PRIMARY KEY, session INTEGER REFERENCES sessions(id),
+            section TEXT, name TEXT, kind TEXT, content TEXT, created REAL,
+            UNIQUE (session, section, name, kind));
+    """)
+    sizes = {(run, name): n // 8 for run, name, n in
+             db.execute("SELECT run, name, length(data) FROM series")}
+    for (run, name), size in sizes.items():
+        shape = [size]
+        if name in ("sample:q", "sample:v"):
+            n_t = sizes.get((run, "sample:t"), 0)
+            if n_t and size % n_t == 0:
+                shape = [n_t, size // n_t]
+        db.execute("UPDATE series SET shape = ? WHERE run = ? AND name = ?",
+                   (json.dumps(shape), run, name))
+    db.execute("PRAGMA user_version = 2")
+
+
+#: Columns of version 2 that files written while it was developed may lack; a writer adds
+#: them (and any ``runs.csv`` column the file lacks), readers do without.
+LATE_COLUMNS = {"sessions": {"timing_note": "TEXT"},
+                "runs": {"recorded": "REAL", "nominal_order": "REAL", "sensitive": "INTEGER"}}
+
+#: version -> the function that upgrades a database of that version by one.
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2}
+
+
+def _version(db: sqlite3.Connection) -> int:
+    return db.execute("PRAGMA user_version").fetchone()[0]
+
+
+def migrate(db: sqlite3.Connection, where: str) -> None:
+    """Upgrade ``db`` to :data:`SCHEMA_VERSION`, one version per transaction."""
+    version = _version(db)
+    if version > SCHEMA_VERSION:
+        raise StoreError(f"{where}: schema version {version} is newer than this code's "
+                         f"({SCHEMA_VERSION}); update driftbench to read it")
+    while version < SCHEMA_VERSION:
+        if version not in MIGRATIONS:
+            raise StoreError(f"{where}: no migration from schema version {version}")
+        with db:
+            MIGRATIONS[version](db)
+        version = _version(db)
+
+
+def _table_columns(db: sqlite3.Connection, table: str) -> list[str]:
+    return [row[1] for row in db.execute(f'PRAGMA table_info("{table}")')]
+
+
+# --------------------------------------------------------------------------- writer
+
 class Store:
-    """Append-only access to ``driftbench.sqlite``."""
+    """Append-only access to a results store (``driftbench.sqlite``).
+
+    Opening creates the file, or migrates an older one in place and adds the ``runs.csv``
+    columns it lacks.
+    """
 
     def __init__(self, path: Path):
+        from benchmarks.runner import COLUMNS  # writers only: reading needs no runner
+
+        self.columns = tuple(COLUMNS)
         self.path = Path(path)
-        self.db = sqlite3.connect(self.path)
+        self._sensitive: dict[str, bool | None] = {}  # per problem spec: cases cost to build
+        self.db = sqlite3.connect(self.path, timeout=30.0)
         self.db.execute("PRAGMA journal_mode=WAL")
+        # WAL with synchronous=NORMAL keeps every committed transaction through a crash
+        # of the process; only a power loss may drop the last ones.
         self.db.execute("PRAGMA synchronous=NORMAL")
-        version = self.db.execute("PRAGMA user_version").fetchone()[0]
-        if version == 0:
-            self._create()
-        elif version > SCHEMA_VERSION:
-            raise RuntimeError(f"{self.path}: schema version {version} is newer than this "
-                               f"code's ({SCHEMA_VERSION})")
-
-    def _create(self) -> None:
-        cols = ", ".join(f'"{c}"' for c in COLUMNS)
+        if _version(self.db) == 0:
+            with self.db:
+                _create(self.db, self.columns)
+        else:
+            migrate(self.db, str(self.path))
+        wanted = {"sessions": LATE_COLUMNS["sessions"],
+                  "runs": {**LATE_COLUMNS["runs"], **{c: "" for c in self.columns}}}
         with self.db:
-            self.db.executescript(f"""
-                CREATE TABLE IF NOT EXISTS sessions (
-                    id INTEGER PRIMARY KEY, suite TEXT, started REAL, commit_sha TEXT,
-                    dirty INTEGER, machine TEXT, python TEXT, versions TEXT);
-                CREATE TABLE IF NOT EXISTS runs (
-                    id INTEGER PRIMARY KEY, session INTEGER REFERENCES sessions(id), {cols});
-                CREATE TABLE IF NOT EXISTS series (
-                    run INTEGER REFERENCES runs(id), name TEXT, data BLOB,
-                    PRIMARY KEY (run, name));
-                PRAGMA user_version = {SCHEMA_VERSION};
-            """)
+            for table, columns in wanted.items():
+                have = set(_table_columns(self.db, table))
+                for column, kind in columns.items():
+                    if column not in have:
+                        self.db.execute(f'ALTER TABLE {table} ADD COLUMN "{column}" {kind}')
 
-    def begin(self, suite: str) -> int:
-        """Open a session (one invocation) and return its id."""
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def begin(self, suite: str, timing_note: str | None = None) -> int:
+        """Open a session (one invocation) and return its id.
+
+        ``timing_note`` says how the runner kept wall times honest (shown by the report).
+        """
         p = provenance()
         with self.db:
             cur = self.db.execute(
-                "INSERT INTO sessions (suite, started, commit_sha, dirty, machine, python, versions)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO sessions (suite, started, commit_sha, dirty, machine, python, "
+                "versions, timing_note) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                 (suite, time.time(), p["commit"], int(p["dirty"]), p["machine"], p["python"],
-                 p["versions"]))
+                 p["versions"], timing_note))
         return cur.lastrowid
 
-    def add(self, session: int, record: Record) -> int:
-        """Append one finished run with its series, in one transaction."""
-        cols = ", ".join(f'"{c}"' for c in COLUMNS)
-        marks = ", ".join("?" for _ in COLUMNS)
+    def add(self, session: int, record: "Record") -> int:
+        """Append one finished run with its series, in one transaction; return its run id."""
+        cols = ", ".join(f'"{c}"' for c in self.columns)
+        marks = ", ".join("?" for _ in self.columns)
+        order = nominal_order(record.row["integrator"]) if record.row.get("integrator") else None
+        problem = record.row.get("problem")
+        if problem not in self._sensitive:
+            self._sensitive[problem] = sensitive(problem) if problem else None
+        chaotic = self._sensitive[problem]
         with self.db:
-            cur = self.db.execute(f"INSERT INTO runs (session, {cols}) VALUES (?, {marks})",
-                                  (session, *(record.row.get(c) for c in COLUMNS)))
+            cur = self.db.execute(
+                f"INSERT INTO runs (session, recorded, nominal_order, sensitive, {cols}) "
+                f"VALUES (?, ?, ?, ?, {marks})",
+                (session, time.time(), order, None if chaotic is None else int(chaotic),
+                 *(_sql(record.row.get(c)) for c in self.columns)))
             run = cur.lastrowid
             arrays = {f"window:{k}": v for k, v in record.windows.items()}
             arrays.update({f"sample:{k}": v for k, v in record.samples.items()})
-            self.db.executemany(
-                "INSERT INTO series (run, name, data) VALUES (?, ?, ?)",
-                [(run, name, np.ascontiguousarray(a, dtype="<f8").tobytes())
-                 for name, a in arrays.items()])
+            rows = []
+            for name, a in arrays.items():
+                a = np.ascontiguousarray(a, dtype="<f8")
+                rows.append((run, name, a.tobytes(), json.dumps(list(a.shape))))
+            self.db.executemany("INSERT INTO series (run, name, data, shape) VALUES (?, ?, ?, ?)",
+                                rows)
         return run
+
+    def add_table(self, session: int, section: str, name: str, table: pd.DataFrame) -> None:
+        """Store a table of a study (report section ``section``); replaces a same-named one."""
+        split = table.to_dict(orient="split")
+        content = json.dumps({"columns": [str(c) for c in split["columns"]],
+                              "index": split["index"], "data": split["data"]}, default=str)
+        self._artifact(session, section, name, "table", content)
+
+    def add_figure(self, session: int, section: str, name: str, svg_text: str) -> None:
+        """Store an SVG figure of a study (report section ``section``)."""
+        if "<svg" not in svg_text:
+            raise ValueError(f"figure {section}/{name}: not SVG text")
+        self._artifact(session, section, name, "figure", svg_text)
+
+    def _artifact(self, session, section, name, kind, content) -> None:
+        with self.db:
+            self.db.execute(
+                "INSERT OR REPLACE INTO artifacts (session, section, name, kind, content, created)"
+                " VALUES (?, ?, ?, ?, ?, ?)", (session, section, name, kind, content, time.time()))
+
+    def finished_keys(self) -> set[str]:
+        """``run_key`` of every stored run that a resumed suite need not run again.
+
+        A run is finished unless its status is ``error`` or ``timeout``; an empty set while
+        ``runs.csv`` has no ``run_key`` column.
+        """
+        if "run_key" not in _table_columns(self.db, "runs"):
+            return set()
+        marks = ", ".join("?" for _ in UNFINISHED)
+        rows = self.db.execute(
+            f"SELECT DISTINCT run_key FROM runs WHERE run_key IS NOT NULL "
+            f"AND status NOT IN ({marks})", UNFINISHED)
+        return {r[0] for r in rows}
+
+
+def _sql(value):
+    """A value SQLite can hold: numpy scalars become Python numbers, NaN becomes NULL."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
+# --------------------------------------------------------------------------- readers
+
+def _reader(db) -> sqlite3.Connection:
+    """A read-only connection at the current schema version (migrated in memory if older)."""
+    path = Path(db)
+    if not path.exists():
+        raise StoreError(f"{path}: no results store")
+    con = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=30.0)
+    if _version(con) < SCHEMA_VERSION:
+        memory = sqlite3.connect(":memory:")
+        con.backup(memory)
+        con.close()
+        con = memory
+    migrate(con, str(path))
+    return con
+
+
+def load_runs(db) -> pd.DataFrame:
+    """Every stored run with its session's provenance, one row per run.
+
+    Columns: ``run_id``, ``session``, ``recorded``, ``nominal_order``, ``sensitive``
+    (1 for a chaotic problem, 0 if not, missing if unknown), every stored
+    ``runs.csv`` column, and ``suite``, ``session_started``, ``commit``, ``dirty``,
+    ``machine``, ``python``, ``versions`` from the session.
+    """
+    con = _reader(db)
+    try:
+        # Files written while version 2 was being developed may lack a session column.
+        have = set(_table_columns(con, "sessions"))
+        provenance_cols = ", ".join(f's."{k}" AS "{v}"' if k in have else f'NULL AS "{v}"'
+                                    for k, v in SESSION_COLUMNS.items())
+        frame = pd.read_sql_query(
+            f"SELECT r.*, {provenance_cols} FROM runs r LEFT JOIN sessions s "
+            f"ON r.session = s.id ORDER BY r.id", con)
+    finally:
+        con.close()
+    for column in frame.columns:
+        if column in TEXT_COLUMNS or frame[column].dtype != object:
+            continue  # pandas already typed it (ids stay integers)
+        values = frame[column].dropna()
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            frame[column] = frame[column].astype("float64")
+    return frame.rename(columns={"id": "run_id"})
+
+
+def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
+    """The arrays of one run: ``{"windows": {...}, "samples": {...}}``.
+
+    ``windows`` holds ``t`` (window end times), ``pos``, ``vel``, ``energy`` and
+    ``inv:NAME`` (per-window maxima); ``samples`` holds ``t``, ``q`` and ``v``.
+    """
+    con = _reader(db)
+    try:
+        rows = con.execute("SELECT name, data, shape FROM series WHERE run = ?",
+                           (int(run_id),)).fetchall()
+    finally:
+        con.close()
+    out: dict[str, dict[str, np.ndarray]] = {"windows": {}, "samples": {}}
+    groups = {"window": "windows", "sample": "samples"}
+    for name, data, shape in rows:
+        kind, _, key = name.partition(":")
+        array = np.frombuffer(data, dtype="<f8").astype(np.float64)
+        if shape:
+            array = array.reshape(json.loads(shape))
+        out[groups[kind]][key] = array
+    return out
+
+
+def load_artifacts(db) -> pd.DataFrame:
+    """Every stored study table and figure: ``session, section, name, kind, content, created``.
+
+    ``content`` is SVG text for figures; tables decode with :func:`artifact_table`.
+    """
+    con = _reader(db)
+    try:
+        return pd.read_sql_query(
+            "SELECT a.session, a.section, a.name, a.kind, a.content, a.created, "
+            "s.commit_sha AS \"commit\" FROM artifacts a LEFT JOIN sessions s "
+            "ON a.session = s.id ORDER BY a.id", con)
+    finally:
+        con.close()
+
+
+def artifact_table(content: str) -> pd.DataFrame:
+    """Decode a stored study table."""
+    split = json.loads(content)
+    return pd.DataFrame(split["data"], index=split["index"], columns=split["columns"])

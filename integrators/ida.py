@@ -318,6 +318,13 @@ class IDA(Integrator):
         form = FORMULATIONS[self.formulation]
         t0, t_end = float(grid.t0), float(grid.t_end)
         y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0)
+        # Redundant constraints make the iteration matrix singular; SUNDIALS' dense LU does
+        # not notice, and the run would return meaningless states as a success.
+        rank = int(np.linalg.matrix_rank(np.asarray(mech.G(jnp.asarray(case.q0),
+                                                           jnp.asarray(t0)))))
+        redundant = (f"G(q0) has rank {rank} < m = {m} (redundant constraints): the "
+                     "iteration matrix is singular, which IDA's dense LU cannot solve"
+                     if rank < m else "")
         static = dict(mech=mech, formulation=self.formulation)
         residual = dae_residual.lower(t0, y0, yp0, **static).compile()
         matrix = iteration_matrix.lower(t0, y0, yp0, 1.0, **static).compile()
@@ -342,6 +349,10 @@ class IDA(Integrator):
         sampling = "every internal step (IDA one-step mode)"
 
         def solve():
+            if redundant:
+                recorder.start(t0, y0[:n], y0[n:2 * n])
+                return recorder.trajectory(FAILED, redundant, t0, y0[:n], y0[n:2 * n],
+                                           {"n_steps": 0}, sampling, fail_step=1, fail_time=t0)
             callbacks.reset()
             start = ida.init_step(t0, y0, yp0)
             if not start.success:

@@ -10,15 +10,63 @@ import jax.numpy as jnp
 EPS = float(jnp.finfo(jnp.float64).eps)
 
 
-def solve(A: jax.Array, b: jax.Array) -> jax.Array:
-    """``A^{-1} b``; a 1 x 1 system is a division.
+#: Pivots of the equilibrated LU below this fraction of the largest mark a matrix as
+#: numerically rank deficient.
+RANK_RTOL = 1e-12
 
-    A LAPACK call is opaque to XLA's fusion and costs microseconds; for a single
-    constraint that overhead is most of a small problem's step.
+
+def power_of_two_scale(x: jax.Array) -> jax.Array:
+    """``2^-round(log2 x)`` for ``x > 0`` (1 where ``x`` is 0): scaling by it is exact."""
+    return jnp.where(x > 0, jnp.exp2(-jnp.round(jnp.log2(jnp.where(x > 0, x, 1.0)))), 1.0)
+
+
+def basic_solve(A: jax.Array, b: jax.Array, rtol: float) -> jax.Array:
+    """A basic solution of ``A x = b`` by QR with column pivoting, for rank-deficient ``A``.
+
+    ``A P = Q R`` with ``|R_kk|`` non-increasing; columns whose ``|R_kk|`` falls below
+    ``rtol |R_00|`` are numerically dependent and their unknowns are set to zero, the
+    leading triangle gives the others. For a consistent system this is an exact solution
+    (not the minimum-norm one); ``b`` may be a vector or a matrix of columns.
+    """
+    Q, R, perm = jax.scipy.linalg.qr(A, pivoting=True)
+    d = jnp.abs(jnp.diag(R))
+    keep = d > rtol * d[0]
+    mask = keep[:, None] if b.ndim == 2 else keep
+    R = jnp.where(keep[:, None], R, jnp.eye(A.shape[0]))
+    y = jax.scipy.linalg.solve_triangular(R, jnp.where(mask, Q.T @ b, 0.0))
+    return jnp.zeros_like(y).at[perm].set(y)
+
+
+def solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """``A^{-1} b`` by LU; a rank-revealing basic solution if ``A`` is rank deficient.
+
+    A 1 x 1 system is a division: a LAPACK call is opaque to XLA's fusion and costs
+    microseconds, most of a small problem's step for a single constraint.
+
+    Redundant constraints (a constraint Jacobian ``G`` of rank below ``m``, everywhere or at
+    a singular configuration) make the Newton and projection matrices singular. LU with
+    partial pivoting then leaves a pivot at round-off level, and its solution carries a
+    meaningless, huge component along the null space. The matrix is first equilibrated,
+    ``D_r A D_c`` with power-of-two row and column scalings (exact), so that the test does
+    not mistake badly scaled variables (masses of 1e-7 next to unit lengths) for rank
+    deficiency; when the smallest pivot of its LU falls below :data:`RANK_RTOL` times the
+    largest (or is not finite), the solve switches to :func:`basic_solve` (QR with column
+    pivoting) on the equilibrated system, which drops the dependent directions: for a
+    consistent system it is an exact solution, and the multipliers it gives produce the
+    same (unique) constraint force as any other.
     """
     if A.shape[0] == 1:
         return b / A[0, 0]
-    return jnp.linalg.solve(A, b)
+    r = power_of_two_scale(jnp.max(jnp.abs(A), axis=1))
+    c = power_of_two_scale(jnp.max(jnp.abs(A * r[:, None]), axis=0))
+    As = A * r[:, None] * c[None, :]
+    rb = b * (r[:, None] if b.ndim == 2 else r)
+    lu, piv = jax.scipy.linalg.lu_factor(As)
+    pivots = jnp.abs(jnp.diag(lu))
+    deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
+    y = jax.lax.cond(deficient, lambda: basic_solve(As, rb, RANK_RTOL),
+                     lambda: jax.scipy.linalg.lu_solve((lu, piv), rb))
+    return y * (c[:, None] if b.ndim == 2 else c)
 
 
 class NewtonResult(NamedTuple):

@@ -18,7 +18,11 @@ from problems.mechanics import Mechanics, System  # noqa: F401
 REGISTRY: dict[str, Callable[..., Case]] = {}
 
 #: Modules that register problems when imported.
-_MODULES = ("problems.pendulum", "problems.sps_receiver")
+_MODULES = (
+    "problems.pendulum", "problems.sps_receiver", "problems.flexible_spacecraft",
+    "problems.andrews", "problems.car_axis", "problems.double_pendulum", "problems.chain",
+    "problems.four_bar", "problems.sps_ring", "problems.rigid_body", "problems.bricard",
+)
 
 
 class SpecError(ValueError):

@@ -1,0 +1,330 @@
+"""The drift gate: run a suite and compare every accuracy metric with a committed baseline.
+
+::
+
+    python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json
+    python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json --update
+
+Each run of the suite is matched to the baseline's run of the same identity (problem,
+integrator, setting, horizon). Every metric is compared in its own direction with its own
+:class:`Tolerance`: lower is better for constraint residuals, energy and invariant errors
+and final errors; higher is better for ``scd`` (significant correct digits). A metric
+regresses when it is worse than the baseline by more than its relative factor *and* lies
+above its absolute floor (values at or below the floor are round-off, which may differ
+between machines). A run that finished in the baseline and now does not (``failed``,
+``error``, ``timeout``) is a regression, as is a failed run that now fails earlier.
+
+Runs of sensitive (chaotic) problems, ``System.sensitive``, are compared and reported but
+never fail the gate: their final states depend on round-off. Runs missing from either side
+are reported, not gated (``--update`` records the suite as it is).
+
+Exit status: 0 when nothing gating regressed (or after ``--update``), 1 on a regression,
+2 on bad input (unknown suite, unreadable baseline).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.runner import InputError, one_line, run_specs
+from benchmarks.store import provenance
+
+EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
+BASELINE_FORMAT = 1
+#: Statuses of runs that completed their horizon.
+FINISHED = ("ok",)
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How one metric is compared.
+
+    ``lower`` metrics regress when ``current > factor * baseline`` and ``current > floor``;
+    ``higher`` metrics (digits, ``scd``) regress when ``min(current, floor)`` falls below
+    ``min(baseline, floor) - log10(factor)``, the floor there being the digit count beyond
+    which differences are round-off.
+    """
+
+    direction: str  # "lower" or "higher" is better
+    factor: float
+    floor: float
+
+
+#: Per-metric tolerances. The factor of 4 (0.6 digits for ``scd``) leaves room for what a
+#: change of round-off alone does: residuals accumulate it as a random walk, and an adaptive
+#: method's step sequence jumps when a rejected step turns accepted, which was seen to move
+#: IDA's final error on Andrews' mechanism by a factor of 2 after a refactoring of the
+#: mechanics; the regressions the gate is for move metrics by orders of magnitude. The
+#: floors sit a few hundred ulps above the round-off of O(1) quantities, low enough that a
+#: Newton iteration stopped 1e6 times too early shows in the residuals.
+TOLERANCES: dict[str, Tolerance] = {
+    "max_pos_residual": Tolerance("lower", 4.0, 1e-13),
+    "max_vel_residual": Tolerance("lower", 4.0, 1e-13),
+    "rel_energy_error": Tolerance("lower", 4.0, 1e-13),
+    "final_state_error": Tolerance("lower", 4.0, 1e-12),
+    "scd": Tolerance("higher", 4.0, 11.0),
+}
+#: Tolerance of every declared invariant's error (``inv:NAME``).
+INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
+
+
+def run_id(row: dict) -> str:
+    """The identity a run is matched by: problem, integrator, setting, horizon."""
+    if row.get("h") is not None:
+        setting = f"h={float(row['h']):g}"
+    else:
+        parts = [f"{k}={float(row[k]):g}" for k in ("rtol", "atol") if row.get(k) is not None]
+        setting = " ".join(parts) or "defaults"
+    t_end = row.get("t_end")
+    horizon = f"t_end={float(t_end):g}" if t_end is not None else "t_end=default"
+    return f"{row['problem']} / {row['integrator']} / {setting} / {horizon}"
+
+
+def metrics_of(row: dict) -> dict[str, float | None]:
+    """The accuracy metrics of a ``runs.csv`` row (None where not measured)."""
+    out = {}
+    for name in TOLERANCES:
+        value = row.get(name)
+        out[name] = None if value is None or (isinstance(value, float) and math.isnan(value)) \
+            else float(value)
+    try:
+        invariants = json.loads(row.get("invariant_errors") or "{}")
+    except (TypeError, ValueError):
+        invariants = {}
+    out.update({f"inv:{k}": (None if v is None else float(v)) for k, v in invariants.items()})
+    return out
+
+
+def tolerance(metric: str) -> Tolerance:
+    return INVARIANT_TOLERANCE if metric.startswith("inv:") else TOLERANCES[metric]
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One difference between the baseline and the current run."""
+
+    kind: str  # "regression", "improvement", "note"
+    run: str
+    metric: str
+    baseline: str
+    current: str
+    change: str
+    gating: bool
+
+
+def _fmt(x) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, str):
+        return x
+    return f"{x:.3g}"
+
+
+def compare_metric(metric: str, base: float | None, cur: float | None) -> tuple[str | None, str]:
+    """``("regression" | "improvement" | None, change text)`` for one metric."""
+    tol = tolerance(metric)
+    if base is None and cur is None:
+        return None, ""
+    if cur is None:
+        return "regression", "no longer measured"
+    if base is None:
+        return None, "newly measured"
+    if not math.isfinite(cur) and not (tol.direction == "higher" and cur > 0):
+        return ("regression", "not finite") if math.isfinite(base) else (None, "")
+    if tol.direction == "lower":
+        if cur > tol.factor * base and cur > tol.floor:
+            return "regression", _ratio(base, cur)
+        if base > tol.factor * cur and base > tol.floor:
+            return "improvement", _ratio(base, cur)
+        return None, ""
+    b, c = min(base, tol.floor), min(cur, tol.floor)
+    digits = math.log10(tol.factor)
+    if c < b - digits:
+        return "regression", f"{c - b:+.2f} digits"
+    if c > b + digits:
+        return "improvement", f"{c - b:+.2f} digits"
+    return None, ""
+
+
+def _ratio(base: float, cur: float) -> str:
+    if base == 0:
+        return "from 0"
+    return f"x{cur / base:.3g}"
+
+
+def compare(baseline: dict, current: dict) -> list[Finding]:
+    """Every regression, improvement and note between two ``{run id: entry}`` maps.
+
+    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``.
+    """
+    findings: list[Finding] = []
+    for rid, cur in current.items():
+        gating = not cur.get("sensitive", False)
+        base = baseline.get(rid)
+        if base is None:
+            findings.append(Finding("note", rid, "run", "-", cur["status"],
+                                    "not in the baseline", False))
+            continue
+        bs, cs = base["status"], cur["status"]
+        if bs in FINISHED and cs not in FINISHED:
+            findings.append(Finding("regression", rid, "status", bs, cs,
+                                    "newly fails: " + one_line(cur.get("message") or "")[:200],
+                                    gating))
+            continue
+        if bs not in FINISHED and cs in FINISHED:
+            findings.append(Finding("improvement", rid, "status", bs, cs, "now finishes", gating))
+            continue
+        if bs not in FINISHED:
+            if cs != bs:
+                findings.append(Finding("regression", rid, "status", bs, cs,
+                                        one_line(cur.get("message") or "")[:200], gating))
+            elif (base.get("fail_step") is not None and cur.get("fail_step") is not None
+                  and cur["fail_step"] != base["fail_step"]):
+                kind = "regression" if cur["fail_step"] < base["fail_step"] else "improvement"
+                findings.append(Finding(kind, rid, "fail_step", str(base["fail_step"]),
+                                        str(cur["fail_step"]), "fails at another step", gating))
+            continue
+        names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
+        for metric in names:
+            b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
+            if metric not in TOLERANCES and not metric.startswith("inv:"):
+                continue
+            kind, change = compare_metric(metric, b, c)
+            if kind is not None:
+                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change, gating))
+    for rid in baseline:
+        if rid not in current:
+            findings.append(Finding("note", rid, "run", baseline[rid]["status"], "-",
+                                    "in the baseline, not run", False))
+    return findings
+
+
+def entries(records, sensitive: dict[str, bool]) -> dict[str, dict]:
+    """Baseline entries of a suite's records (``sensitive``: problem spec -> flag)."""
+    out = {}
+    for record in records:
+        row = record.row
+        fail_step = row.get("fail_step")
+        out[run_id(row)] = {
+            "status": row["status"],
+            "message": row.get("message") or "",
+            "fail_step": int(fail_step) if fail_step is not None else None,
+            "sensitive": bool(sensitive.get(row["problem"], False)),
+            "metrics": metrics_of(row),
+        }
+    return out
+
+
+def sensitivity(problem_specs) -> dict[str, bool]:
+    """``System.sensitive`` of each problem spec (specs that do not build count as not)."""
+    import problems
+
+    out = {}
+    for spec in set(problem_specs):
+        try:
+            out[spec] = bool(problems.make(spec).system.sensitive)
+        except Exception:  # the run itself reports the problem as an error
+            out[spec] = False
+    return out
+
+
+def table(findings: list[Finding]) -> str:
+    """The findings as an aligned text table, regressions first."""
+    order = {"regression": 0, "improvement": 1, "note": 2}
+    rows = [("verdict", "run", "metric", "baseline", "current", "change")]
+    for f in sorted(findings, key=lambda f: (order[f.kind], f.run, f.metric)):
+        verdict = f.kind if f.gating or f.kind == "note" else f"{f.kind} (not gating)"
+        rows.append((verdict, f.run, f.metric, f.baseline, f.current, f.change))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+
+
+def read_baseline(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"baseline {path} does not exist; create it with --update") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"baseline {path} cannot be read: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != BASELINE_FORMAT \
+            or not isinstance(data.get("runs"), dict):
+        raise InputError(f"baseline {path} is not a format-{BASELINE_FORMAT} drift baseline")
+    return data
+
+
+def write_baseline(path: Path, suite: str, current: dict) -> None:
+    p = provenance()
+    data = {
+        "format": BASELINE_FORMAT,
+        "suite": suite,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "commit": p["commit"],
+        "dirty": p["dirty"],
+        "machine": p["machine"],
+        "versions": json.loads(p["versions"]),
+        "runs": dict(sorted(current.items())),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1, sort_keys=False) + "\n")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.check",
+                                description=__doc__.split("\n")[0])
+    p.add_argument("--suite", default="ci", help="suite name or path (default: ci)")
+    p.add_argument("--baseline", type=Path, required=True, help="baseline JSON file")
+    p.add_argument("--update", action="store_true",
+                   help="rewrite the baseline from this run instead of gating")
+    p.add_argument("--out", type=Path,
+                   help="keep runs.csv and the results store here (default: a temporary folder)")
+    p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
+    p.add_argument("--timeout", type=float, help="time limit of each run, seconds")
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    from benchmarks import suites, worker
+
+    try:
+        worker.load_plugins()
+        suite = suites.load(args.suite)
+        baseline = None if args.update else read_baseline(args.baseline)
+        with tempfile.TemporaryDirectory(prefix="driftbench-check-") as tmp:
+            out = args.out or Path(tmp)
+            records = run_specs(suite.runs, out, args.jobs, suite=f"check:{suite.name}",
+                                repeats=1, timeout=args.timeout or suite.timeout)
+    except InputError as exc:
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_INPUT
+    current = entries(records, sensitivity(r.row["problem"] for r in records))
+    if args.update:
+        if args.baseline.exists():
+            try:
+                old = read_baseline(args.baseline)["runs"]
+                print(table(compare(old, current)))
+            except InputError:
+                pass
+        write_baseline(args.baseline, suite.name, current)
+        print(f"wrote {args.baseline} ({len(current)} runs)")
+        return EXIT_OK
+    findings = compare(baseline["runs"], current)
+    gating = [f for f in findings if f.kind == "regression" and f.gating]
+    improvements = [f for f in findings if f.kind == "improvement"]
+    if findings:
+        print(table(findings))
+    print(f"drift gate {'FAILED' if gating else 'passed'}: {len(current)} runs of suite "
+          f"{suite.name!r} against {args.baseline}; {len(gating)} gating regressions, "
+          f"{len(improvements)} improvements")
+    return EXIT_REGRESSION if gating else EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

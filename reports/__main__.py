@@ -1,0 +1,32 @@
+"""``python -m reports --db results/driftbench.sqlite --out results/``: rebuild the report."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from benchmarks.store import STORE_NAME, StoreError
+from reports import build
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m reports",
+                                description="Rebuild report.md and report.html from a results store.")
+    p.add_argument("--db", type=Path, help=f"results store (default: OUT/{STORE_NAME})")
+    p.add_argument("--out", type=Path, default=Path("results"),
+                   help="output folder (default: results/)")
+    args = p.parse_args(argv)
+    try:
+        paths = build(args.db or args.out / STORE_NAME, args.out)
+    except StoreError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for path in paths[:2]:
+        print(f"wrote {path}")
+    print(f"wrote {len(paths) - 2} figures under {args.out / 'figures'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

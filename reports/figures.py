@@ -1,0 +1,231 @@
+"""The report's figures, drawn with matplotlib's object API and returned as SVG text.
+
+No pyplot: figures are built directly, so the report neither touches the global backend
+nor keeps figures alive. Text is drawn as paths (``svg.fonttype = path``), so an SVG needs
+no font; ids are salted deterministically so that the same data give the same file.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+from matplotlib import rc_context
+from matplotlib.figure import Figure
+
+from reports.analysis import COST, PRECISION, Convergence, fmt
+
+#: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
+LOG_FLOOR = 1e-17
+#: Top of the per-step violation axis: a blown-up run would squeeze every other line.
+VIOLATION_TOP = 10.0
+RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "path", "font.size": 8,
+      "axes.grid": True, "grid.alpha": 0.3, "legend.fontsize": 7, "axes.titlesize": 9}
+MARKERS = "os^Dv<>pP*Xh"
+
+
+def palette(keys) -> dict[str, tuple]:
+    """A fixed colour and marker per integrator, the same in every figure."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab20" if len(keys) > 10 else "tab10"]
+    return {k: (cmap(i % cmap.N), MARKERS[i % len(MARKERS)]) for i, k in enumerate(sorted(keys))}
+
+
+def _svg(fig: Figure) -> str:
+    buf = io.StringIO()
+    # A run that blew up (|g| near 1e300) overflows the log axis' tick arithmetic; the
+    # ticks that overflow are dropped, which is all that can be drawn there.
+    with rc_context(RC), np.errstate(over="ignore"):
+        fig.savefig(buf, format="svg", metadata={"Date": None}, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _figure(rows: int, cols: int, width: float, height: float) -> tuple[Figure, np.ndarray]:
+    with rc_context(RC):
+        fig = Figure(figsize=(width, height), layout="constrained")
+        axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False))
+    return fig, axes
+
+
+def _floor(y) -> np.ndarray:
+    y = np.asarray(y, dtype=float)
+    return np.where(np.isfinite(y), np.maximum(y, LOG_FLOOR), np.nan)
+
+
+def _empty(ax, text: str) -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="0.4")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def drift(entries: list[dict], colors: dict, title: str) -> str:
+    """``|g|`` and ``|H - H0|`` (window maxima) against ``t``, log-log, one line per entry.
+
+    Each entry: ``label``, ``integrator``, ``windows`` (``t``, ``pos``, ``energy``),
+    ``failed`` (bool) and ``fail_time``. A failed run's line ends in a cross.
+    """
+    with rc_context(RC):
+        fig, axes = _figure(1, 2, 9.0, 3.4)
+        panels = (("pos", "max |g| per window"), ("energy", "max |H - H0| per window"))
+        for ax, (key, label) in zip(axes[0], panels):
+            drawn = 0
+            for e in entries:
+                w = e["windows"]
+                if key not in w or "t" not in w or len(w["t"]) == 0:
+                    continue
+                t, y = np.asarray(w["t"], float), _floor(w[key])
+                keep = t > 0
+                if not keep.any():
+                    continue
+                color, marker = colors[e["integrator"]]
+                ax.loglog(t[keep], y[keep], color=color, lw=1.0, label=e["label"])
+                if e.get("failed"):
+                    ax.plot(t[keep][-1], y[keep][-1], marker="x", ms=8, mew=2, color=color)
+                drawn += 1
+            if drawn:
+                ax.set_xlabel("t")
+                ax.set_ylabel(label)
+                ax.set_title(label + " against t")
+            else:
+                _empty(ax, "no series: " + ("no conserved energy" if key == "energy"
+                                            else "no run produced one"))
+        handles, labels = axes[0, 0].get_legend_handles_labels()
+        if not handles:
+            handles, labels = axes[0, 1].get_legend_handles_labels()
+        if handles:
+            fig.legend(handles, labels, loc="outside lower center", ncols=min(3, len(labels)))
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def work_precision(runs, colors: dict, title: str) -> str:
+    """Precision (final error, max ``|g|``, max relative energy error) against cost (wall
+    time, evaluations), log-log, one line per integrator through its finished runs."""
+    with rc_context(RC):
+        fig, axes = _figure(len(PRECISION), len(COST), 8.0, 8.5)
+        ok = runs[runs["status"] == "ok"]
+        for i, (pcol, plabel) in enumerate(PRECISION):
+            for j, (ccol, clabel) in enumerate(COST):
+                ax = axes[i, j]
+                drawn = 0
+                for key, grp in ok.groupby("integrator"):
+                    g = grp[[ccol, pcol]].astype(float).dropna()
+                    g = g[g[ccol] > 0].sort_values(ccol)
+                    if g.empty:
+                        continue
+                    color, marker = colors[key]
+                    ax.loglog(g[ccol], _floor(g[pcol]), marker=marker, ms=4, lw=1.0,
+                              color=color, label=key)
+                    drawn += 1
+                if drawn:
+                    ax.set_xlabel(clabel)
+                    ax.set_ylabel(plabel)
+                else:
+                    _empty(ax, f"{plabel}: not measured" if pcol != "final_state_error"
+                           else "final error: no reference")
+        handles, labels = [], []
+        for ax in axes.flat:
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                if lab not in labels:
+                    handles.append(h)
+                    labels.append(lab)
+        if handles:
+            fig.legend(handles, labels, loc="outside lower center", ncols=min(5, len(labels)))
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) -> str:
+    """Error against step size, log-log, with fitted and nominal orders in the legend and a
+    dashed slope of the nominal order through each method's finest point."""
+    with rc_context(RC):
+        fig, axes = _figure(1, 1, 6.0, 4.2)
+        ax = axes[0, 0]
+        drawn = 0
+        for c in convs:
+            keep = np.isfinite(c.err)
+            if not keep.any():
+                continue
+            color, marker = colors[c.integrator]
+            fitted = "n/a" if math.isnan(c.order) else f"{c.order:.2f}"
+            nominal = "n/a" if math.isnan(c.nominal) else fmt(c.nominal)
+            ax.loglog(c.h[keep], _floor(c.err[keep]), marker=marker, ms=4, lw=1.0, color=color,
+                      label=f"{c.integrator}: fitted {fitted}, nominal {nominal}")
+            if not math.isnan(c.nominal) and keep.sum() >= 2:
+                h0, e0 = c.h[keep][-1], max(c.err[keep][-1], LOG_FLOOR)
+                hs = np.array([c.h[keep][0], h0])
+                ax.loglog(hs, e0 * (hs / h0) ** c.nominal, ls="--", lw=0.8, color=color)
+            drawn += 1
+        if drawn:
+            ax.set_xlabel("h")
+            ax.set_ylabel("error")
+            ax.legend(loc="best")
+        else:
+            _empty(ax, "no finished fixed-step runs")
+        ax.set_title(basis, fontsize=7)
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def ring_snapshots(snapshots: list[tuple[float, float, float]], title: str) -> str:
+    """The receiver's twelve points at several times, in the co-rotating plane.
+
+    ``snapshots``: ``(t, R, r)``. Outer points at radius ``R`` and angles ``k * 60 deg``
+    (``*``), inner points at radius ``r`` and ``30 + k * 60 deg`` (``+``), joined by the
+    bars in the zig-zag order outer k, inner k, outer k+1.
+    """
+    n = max(1, len(snapshots))
+    cols = min(3, n)
+    rows = math.ceil(n / cols)
+    with rc_context(RC):
+        fig, axes = _figure(rows, cols, 3.0 * cols, 3.0 * rows)
+        lim = 1.15 * max([max(R, r) for _, R, r in snapshots] or [1.0])
+        for ax, (t, R, r) in zip(axes.flat, snapshots):
+            outer = np.deg2rad(60.0 * np.arange(6))
+            inner = outer + np.deg2rad(30.0)
+            xo, yo = R * np.cos(outer), R * np.sin(outer)
+            xi, yi = r * np.cos(inner), r * np.sin(inner)
+            zx = np.ravel(np.column_stack([xo, xi]))
+            zy = np.ravel(np.column_stack([yo, yi]))
+            ax.plot(np.append(zx, zx[0]), np.append(zy, zy[0]), color="0.6", lw=0.8)
+            ax.plot(xo, yo, "*", color="tab:red", ms=8, label=f"outer, R = {R:.4f}")
+            ax.plot(xi, yi, "+", color="tab:blue", ms=8, mew=1.5, label=f"inner, r = {r:.4f}")
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim, lim)
+            ax.set_aspect("equal")
+            ax.set_title(f"t = {t:g}")
+            ax.legend(loc="lower right", fontsize=6)
+        for ax in list(axes.flat)[len(snapshots):]:
+            ax.set_visible(False)
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def step_violation(entries: list[dict], colors: dict, title: str, claim: float) -> str:
+    """``|g|`` at each step (window maxima) against ``t`` on a log axis, with the claimed
+    bound drawn as a horizontal line."""
+    with rc_context(RC), np.errstate(over="ignore"):
+        fig, axes = _figure(1, 1, 9.0, 4.0)
+        ax = axes[0, 0]
+        for e in entries:
+            w = e["windows"]
+            if "t" not in w or len(w["t"]) == 0:
+                continue
+            color, marker = colors[e["integrator"]]
+            ax.semilogy(w["t"], _floor(w["pos"]), marker=marker if len(w["t"]) <= 200 else None,
+                        ms=3, lw=0.9, color=color, ls="-" if not e.get("failed") else ":",
+                        label=e["label"])
+            if e.get("failed"):
+                ax.plot(w["t"][-1], _floor(w["pos"])[-1], "x", ms=9, mew=2, color=color)
+        ax.axhline(claim, color="k", ls="--", lw=0.8, label=f"seed's bound {claim:g}")
+        drawn = [_floor(e["windows"]["pos"]) for e in entries if len(e["windows"].get("t", []))]
+        values = np.concatenate(drawn + [np.array([claim])])
+        values = values[np.isfinite(values)]
+        ax.set_ylim(values.min() / 3.0, min(values.max(), VIOLATION_TOP) * 3.0)
+        ax.set_xlabel("t")
+        ax.set_ylabel("|g(q_n)|")
+        fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+        fig.suptitle(title)
+        return _svg(fig)

@@ -1,0 +1,103 @@
+"""The drift gate: direction-aware comparison, and a planted regression that must fail it."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from benchmarks import check, worker
+from benchmarks.check import compare, compare_metric
+from integrators.lobatto import LobattoIIIAIIIB
+
+
+def entry(status="ok", sensitive=False, fail_step=None, **metrics):
+    return {"status": status, "message": "", "fail_step": fail_step, "sensitive": sensitive,
+            "metrics": metrics}
+
+
+@pytest.mark.parametrize("metric, base, cur, verdict", [
+    ("max_pos_residual", 1e-10, 1e-8, "regression"),     # 100x worse, above the floor
+    ("max_pos_residual", 1e-8, 1e-10, "improvement"),
+    ("max_pos_residual", 1e-10, 3e-10, None),             # within the factor
+    ("max_pos_residual", 4e-16, 5e-14, None),             # both at round-off
+    ("max_pos_residual", 4e-16, 5e-12, "regression"),     # out of round-off
+    ("scd", 6.0, 4.0, "regression"),                       # higher is better: 2 digits lost
+    ("scd", 4.0, 6.0, "improvement"),
+    ("scd", 6.0, 5.9, None),
+    ("scd", 13.0, 15.0, None),                             # beyond the digit floor: round-off
+    ("final_state_error", 1e-6, None, "regression"),       # no longer measured
+    ("final_state_error", 1e-6, float("inf"), "regression"),
+    ("inv:angular momentum", 1e-9, 1e-6, "regression"),
+])
+def test_metrics_are_compared_in_their_direction(metric, base, cur, verdict):
+    assert compare_metric(metric, base, cur)[0] == verdict
+
+
+def test_status_changes_and_sensitive_problems():
+    base = {"a": entry(max_pos_residual=1e-10), "b": entry("failed", fail_step=5),
+            "c": entry(max_pos_residual=1e-10, sensitive=True), "gone": entry()}
+    cur = {"a": entry("failed", fail_step=3), "b": entry("failed", fail_step=2),
+           "c": entry(max_pos_residual=1e-3, sensitive=True), "new": entry()}
+    found = {(f.run, f.metric): f for f in compare(base, cur)}
+    assert found[("a", "status")].kind == "regression" and found[("a", "status")].gating
+    assert found[("b", "fail_step")].kind == "regression"  # fails earlier than before
+    sensitive = found[("c", "max_pos_residual")]
+    assert sensitive.kind == "regression" and not sensitive.gating
+    assert not found[("new", "run")].gating and not found[("gone", "run")].gating
+    back = {(f.run, f.metric): f.kind for f in compare(cur, base)}
+    assert back[("a", "status")] == "improvement"
+
+
+SUITE = """
+description = "drift gate test: two deterministic short runs"
+[[group]]
+problems = ["pendulum"]
+integrators = ["lobatto3ab3", "rattle"]
+h = [0.05]
+t_end = 5.0
+"""
+
+NEWTON_TOL = next(f.default for f in dataclasses.fields(LobattoIIIAIIIB) if f.name == "newton_tol")
+#: The planted regression: lobatto3ab3's Newton tolerance loosened a millionfold, as if a
+#: code change had altered its preset (run keys and the suite stay the same).
+PLANT = textwrap.dedent(f"""
+    import integrators
+    target, preset = integrators.REGISTRY["lobatto3ab3"]
+    integrators.REGISTRY["lobatto3ab3"] = (target, {{**preset, "newton_tol": {NEWTON_TOL * 1e6!r}}})
+""")
+
+
+def test_the_gate_passes_unchanged_code_and_fails_a_planted_regression(tmp_path):
+    suite, baseline = tmp_path / "gate.toml", tmp_path / "baseline.json"
+    suite.write_text(SUITE)
+    args = ["--suite", str(suite), "--baseline", str(baseline), "--jobs", "1"]
+    assert check.main([*args, "--update"]) == 0
+    data = json.loads(baseline.read_text())
+    assert len(data["runs"]) == 2 and data["commit"] is not None
+
+    assert check.main(args) == 0  # the same code again: deterministic, so nothing moves
+
+    plugin = tmp_path / "loose_newton.py"
+    plugin.write_text(PLANT)
+    env = {**os.environ, worker.PLUGIN_ENV: str(plugin)}
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.check", *args], env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == check.EXIT_REGRESSION, proc.stdout + proc.stderr
+    regressions = [line for line in proc.stdout.splitlines() if line.startswith("regression")]
+    assert regressions, proc.stdout
+    assert all("lobatto3ab3" in line for line in regressions)  # rattle is untouched
+    assert any("max_vel_residual" in line for line in regressions), proc.stdout
+    assert "FAILED" in proc.stdout
+
+
+def test_bad_input_exits_2_before_running(tmp_path, capsys):
+    assert check.main(["--suite", "no-such-suite", "--baseline", str(tmp_path / "b.json")]) == 2
+    assert "unknown suite" in capsys.readouterr().err
+    suite = tmp_path / "gate.toml"
+    suite.write_text(SUITE)
+    assert check.main(["--suite", str(suite), "--baseline", str(tmp_path / "none.json")]) == 2
+    assert "--update" in capsys.readouterr().err

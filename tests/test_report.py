@@ -1,0 +1,207 @@
+"""The report: self-contained HTML, a figure per problem, the seed section, escaping.
+
+The store is filled with synthetic runs (the report reads the store only, so it cannot tell
+them from real ones) to keep this file fast; the quick suite exercises it end to end.
+"""
+
+import json
+import re
+import sqlite3
+from html.parser import HTMLParser
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmarks.runner import COLUMNS, Record
+from benchmarks.store import Store
+from reports import build
+from reports.seed import SEED_PARAMS, claim_sentence, seed_runs
+
+EVIL = '<script>alert("x")</script> & <img src="http://evil.example/x.png"> | *bold*'
+SEED = dict(SEED_PARAMS, l=0.504341)
+
+
+def run(problem, integrator, h, status="ok", message="", t_end=10.0, params=None, order=2,
+        pos=1e-15, energy=1e-6, final=None, n=200):
+    """A synthetic run whose series grow as its metrics say."""
+    row = {c: None for c in COLUMNS}
+    t = np.linspace(t_end / n, t_end, n)
+    stop = n if status == "ok" else 3
+    row.update(problem=problem, integrator=integrator, h=h, t_end=t_end, status=status,
+               message=message, n_steps=stop * 5, n_f_evals=stop * 20, wall_s=1e-3 / h,
+               max_pos_residual=pos, max_vel_residual=pos / 2,
+               max_energy_error=energy, rel_energy_error=energy / 2.0,
+               final_state_error=final, scd=None if final is None else -np.log10(final),
+               t_final=t[stop - 1], fail_step=None if status == "ok" else stop + 1,
+               q_final=json.dumps([1.0 + (final or 0.0), 0.8]), v_final=json.dumps([0.0, 0.0]),
+               options=json.dumps({"h": h, "stages": order // 2 + 1}),
+               params=json.dumps(params or {}))
+    windows = {"t": t[:stop], "pos": np.full(stop, pos), "vel": np.full(stop, pos / 2),
+               "energy": energy * (0.5 + 0.5 * np.abs(np.sin(t[:stop])))}
+    phase = np.linspace(0.0, 1.0, stop + 1)
+    samples = {"t": np.concatenate([[0.0], t[:stop]]),
+               "q": np.stack([1.0 - 0.1 * phase, 0.8 + 0.1 * phase], axis=1),
+               "v": np.zeros((stop + 1, 2))}
+    return Record(row, windows, samples)
+
+
+def fill(path, commit=None):
+    with Store(path) as st:
+        session = st.begin("unit")
+        for h, final in ((0.1, 1e-4), (0.05, 2.5e-5), (0.025, 6.25e-6)):
+            st.add(session, run("pendulum", "rattle", h, final=final))
+            st.add(session, run("pendulum", "lobatto3ab3", h, final=final ** 2, energy=1e-9))
+        st.add(session, run("pendulum", "lobatto3ab3", 0.2, status="failed", message=EVIL))
+        for h in (0.5, 0.1, 0.05):
+            status = "failed" if h == 0.5 else "ok"
+            st.add(session, run("sps-receiver", "lobatto3ab2", h, status=status, t_end=50.0,
+                                message="Newton failed at step 2" if status != "ok" else "",
+                                params=SEED, pos=5e-16))
+        st.add_table(session, "flexible-modal", "frequencies",
+                     pd.DataFrame({"mode": [1, 2], "f [Hz]": [0.125, 0.5]}))
+        st.add_figure(session, "flexible-modal", "mode shapes",
+                      '<svg xmlns="http://www.w3.org/2000/svg" onload="alert(1)">'
+                      '<script>alert(2)</script><image href="http://evil.example/y.png"/>'
+                      '<style>body { display: none }</style>'
+                      '<rect id="r" width="5" height="5"/><use href="#r"/></svg>')
+        st.add_figure(session, "flexible-modal", "broken", "<svg><g></svg>")
+    if commit:
+        with sqlite3.connect(path) as db:
+            db.execute("UPDATE sessions SET commit_sha = ? WHERE id = "
+                       "(SELECT max(id) FROM sessions)", (commit,))
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("report")
+    db = out / "driftbench.sqlite"
+    fill(db, commit="1111111111aaaa")
+    fill(db, commit="2222222222bbbb")
+    paths = build(db, out)
+    return out, paths
+
+
+class Resources(HTMLParser):
+    """Every attribute that could make a browser fetch something, and every tag."""
+
+    def __init__(self):
+        super().__init__()
+        self.refs, self.tags = [], []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        for name, value in attrs:
+            if name in ("src", "href", "xlink:href", "srcset", "poster", "data", "action"):
+                self.refs.append((tag, name, value or ""))
+
+
+def sections(html: str) -> dict[str, str]:
+    """The HTML of each h2 section, by its heading text."""
+    parts = re.split(r'<h2 id="[^"]*">', html)[1:]
+    return {p[:p.index("</h2>")]: p for p in parts}
+
+
+def test_both_reports_and_their_figures_are_written(report):
+    out, paths = report
+    assert paths[0] == out / "report.md" and paths[1] == out / "report.html"
+    figures = paths[2:]
+    assert figures and all(p.suffix == ".svg" and p.parent == out / "figures" for p in figures)
+    md = (out / "report.md").read_text()
+    for p in figures:
+        assert f"(figures/{p.name})" in md
+
+
+def test_html_loads_nothing_from_outside(report):
+    out, _ = report
+    html = (out / "report.html").read_text()
+    parser = Resources()
+    parser.feed(html)
+    assert "script" not in parser.tags and "link" not in parser.tags
+    assert "iframe" not in parser.tags and "img" not in parser.tags
+    for tag, name, value in parser.refs:
+        assert value.startswith("#"), (tag, name, value)  # in-page anchors and SVG ids only
+    assert "@import" not in html
+    assert not re.search(r"url\(\s*['\"]?(?!#)", html)
+
+
+def test_every_problem_has_a_figure_and_the_seed_section_is_there(report):
+    out, _ = report
+    secs = sections((out / "report.html").read_text())
+    for problem in ("pendulum", "sps-receiver"):
+        assert "<svg" in secs[f"Problem: {problem}"]
+    seed = secs["Seed reproduction: SPS receiver"]
+    assert seed.count("<svg") >= 2  # the analogues of the seed's Figs. 3 and 4
+    assert "not reproduced" in seed and "h=0.1" in seed
+    assert "Headline" in secs and "History across commits" in secs and "Provenance" in secs
+    assert "1111111111" in secs["History across commits"]
+    assert "Study: flexible-modal" in secs
+
+
+def test_messages_are_escaped_and_failed_runs_show_as_failed(report):
+    out, _ = report
+    html = (out / "report.html").read_text()
+    assert EVIL not in html and "<script>alert" not in html
+    assert '&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt;' in html
+    problem = sections(html)["Problem: pendulum"]
+    failed_row = next(r for r in problem.split("<tr") if "h=0.2" in r)
+    assert "failed" in failed_row and "&lt;script&gt;" in failed_row
+    md = (out / "report.md").read_text()
+    assert "<script>" not in md and "&lt;script>" in md
+
+
+def test_study_figures_are_sanitised(report):
+    out, _ = report
+    study = sections((out / "report.html").read_text())["Study: flexible-modal"]
+    assert "onload" not in study and "alert(2)" not in study and "evil.example" not in study
+    assert "display: none" not in study  # its style would have applied to the whole page
+    assert "<table" in study and "0.125" in study
+    assert "Figure broken cannot be shown: not well-formed SVG" in study
+    ids = re.findall(r'\bid="([^"]+)"', study)
+    assert any(i.endswith("-r") for i in ids)  # ids prefixed, references kept working
+    assert re.search(r'href="#f\d+-r"', study)
+
+
+def test_markdown_and_html_have_the_same_sections(report):
+    out, _ = report
+    md_heads = re.findall(r"^#{2,3} (.+)$", (out / "report.md").read_text(), re.M)
+    html_heads = re.findall(r'<h[23] id="[^"]*">([^<]+)</h[23]>',
+                            (out / "report.html").read_text())
+    unescape = [re.sub(r"\\(.)", r"\1", h) for h in md_heads]
+    assert unescape == [h.replace("&#x27;", "'") for h in html_heads]
+
+
+def test_the_seed_sentence_follows_the_data():
+    """The same code says 'support' or 'contradict' depending on the stored max |g|."""
+    def frame(g):
+        rec = run("sps-receiver", "lobatto3ab2", 0.5, t_end=50.0, params=SEED, pos=g)
+        return pd.DataFrame([{**rec.row, "run_id": 1}])
+
+    assert "support the claim" in claim_sentence(seed_runs(frame(1e-12)))
+    assert "contradict the claim" in claim_sentence(seed_runs(frame(1e-8)))
+    assert "no 2-stage run" in claim_sentence(seed_runs(frame(1e-12).assign(h=0.25)))
+
+
+def test_the_report_stage_imports_no_integrator():
+    """Layering: reports read the store only (and so never pay for importing JAX)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, reports, reports.report; "
+            "print(sorted(m for m in ('integrators', 'problems', 'jax') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_a_version_1_store_still_gives_a_report(tmp_path):
+    """Old stores load through the migration; what they lack shows as 'n/a', not a crash."""
+    from test_store import write_v1
+
+    write_v1(tmp_path / "old.sqlite")
+    md, html = build(tmp_path / "old.sqlite", tmp_path)[:2]
+    text = html.read_text()
+    assert "Problem: pendulum" in text and "<svg" in sections(text)["Problem: pendulum"]
+    # The synthetic old run has no evaluation count and no energy error: 'n/a', not blank.
+    assert "| rattle | h=0.01 | 10 | ok | 1000 | n/a |" in md.read_text()
