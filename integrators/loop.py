@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from integrators.base import COUNTERS, FAILED, OK, Grid, Trajectory
+from integrators.record import measurer
 from problems.mechanics import Mechanics
 
 #: Failure codes a step can return (0 is success).
@@ -123,15 +124,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     t0, N, W, stride = grid.t0, plan.n_steps, plan.n_windows, plan.stride
     n_inv = len(mech.system.invariants)
 
-    def measure(q, v, t, E0, I0):
-        return jnp.concatenate([
-            jnp.stack([
-                jnp.max(jnp.abs(mech.g(q, t)), initial=0.0),
-                jnp.max(jnp.abs(mech.vel_residual(q, v, t)), initial=0.0),
-                jnp.abs(mech.energy(q, v) - E0),
-            ]),
-            jnp.abs(mech.invariant_values(q, v) - I0),
-        ])
+    measure = measurer(mech)
 
     def segment(k, carry, counts, stop, E0, I0):
         """Steps ``k .. stop - 1`` or up to the first failure; maxima of their measures.
@@ -152,7 +145,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             good = code == 0
             carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
             k1 = k + good.astype(k.dtype)
-            m = measure(q, v, t0 + k1 * plan.h, E0, I0)
+            m = measure(t0 + k1 * plan.h, q, v, E0, I0)
             peak = jnp.maximum(peak, jnp.where(good, m, 0.0))
             counts = counts + jnp.stack([jnp.asarray(inc.get(key, 0), jnp.int64)
                                          for key in WORK])
@@ -166,7 +159,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         q0, v0 = observe(carry0)
         tz = jnp.asarray(t0, dtype=jnp.float64)
         E0, I0 = mech.energy(q0, v0), mech.invariant_values(q0, v0)
-        wins = jnp.zeros((W, 3 + n_inv)).at[0].set(measure(q0, v0, tz, E0, I0))
+        wins = jnp.zeros((W, 3 + n_inv)).at[0].set(measure(tz, q0, v0, E0, I0))
         samp_q = jnp.zeros((plan.n_samples, mech.n)).at[0].set(q0)
         samp_v = jnp.zeros((plan.n_samples, mech.n)).at[0].set(v0)
         counts = jnp.zeros(len(WORK), jnp.int64)

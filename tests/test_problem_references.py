@@ -5,24 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import integrators
 import problems
 from benchmarks.metrics import reference_error
-from integrators import Grid
-
-
-def solve(spec, key, t_end=None, **options):
-    case = problems.make(spec)
-    if t_end is not None:
-        case = case.with_t_end(t_end)
-    traj = integrators.make(key, **options).prepare(case, Grid(case.t0, case.t_end))()
-    assert traj.status == "ok", traj.message
-    return case, traj
-
-
-def state_error(case, traj):
-    q_ref, v_ref = case.reference.solution(traj.t_final)
-    return max(np.max(np.abs(traj.q_final - q_ref)), np.max(np.abs(traj.v_final - v_ref)))
+from helpers import solve, state_error
 
 
 def test_andrews_positions_to_nine_digits():
