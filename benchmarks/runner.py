@@ -17,6 +17,11 @@ side by side:
   set-up, and the repeats of a run all happen in its own worker. What this does not control
   (other processes on the machine, shared caches and memory bandwidth) is said in the
   session's ``timing_note`` (:func:`timing_note`), with the load average at the start;
+- **reuse**: a worker keeps the cases it built (they are immutable), and with them what
+  was compiled for their systems; the runs of one problem and method (a sweep over ``h``
+  or ``rtol``) go to the same worker where they can, so a sweep compiles once (the fixed
+  step loop takes ``h`` as an argument, :mod:`integrators.loop`). ``setup_s`` of a run
+  that reused a compilation is the small remainder;
 - **identical accuracy**: a run computes the same thing whatever ``jobs`` is, in a worker
   with the same thread settings pinned to one core, so accuracy columns do not depend on
   ``jobs``;
@@ -38,6 +43,7 @@ back from the store as stored (their latest finished row), and the runs of this 
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import itertools
 import json
@@ -143,9 +149,16 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     return runs
 
 
+@functools.lru_cache(maxsize=8)
+def _case(problem: str):
+    # Cases are immutable: the runs of a worker share them, and with them the compiled
+    # functions keyed on their Mechanics (a step-size or tolerance sweep compiles once).
+    return problems.make(problem)
+
+
 def build(spec: RunSpec):
     """The case and the integrator of a run spec (raises on bad input)."""
-    case = problems.make(spec.problem)
+    case = _case(spec.problem)
     if spec.t_end is not None:
         case = case.with_t_end(spec.t_end)
     integrator = integrators.make(spec.integrator, h=spec.h, rtol=spec.rtol, atol=spec.atol)
@@ -380,7 +393,9 @@ def timing_note(jobs: int, pinned: bool, cpus: list[int], repeats: int) -> str:
                      f"cores, so wall times are inflated by their neighbours")
     return (f"Each run executes in a worker process with one intra-op thread (XLA, BLAS); "
             f"{placement}. wall_s is the median of up to {repeats} timed repeats of the "
-            f"solve after set-up (setup_s, timed once, includes compilation). Not controlled: "
+            f"solve after set-up (setup_s, timed once, includes compilation; near zero for "
+            f"a run that reused what an earlier run of the same problem and method "
+            f"compiled in its worker). Not controlled: "
             f"other processes on the machine and shared caches and memory bandwidth; "
             f"1-minute load average at the start: {load}.")
 
@@ -584,8 +599,11 @@ def _run_batch(pool, store, specs, fixed, out, *, suite, repeats, timeout, resum
         stored = _stored_rows(store.path, {fixed[i]["run_key"] for i in skipped})
         for i in skipped:
             records[i] = Record(stored[fixed[i]["run_key"]])
+    # A run's affinity is its problem and method: a sweep over h or rtol stays on one
+    # worker, which compiles the method once for it.
     tasks = [worker.Task(i, "run", (spec, repeats, _limit(spec.timeout or timeout), grid_options),
-                         _limit(spec.timeout or timeout), spec.label())
+                         _limit(spec.timeout or timeout), spec.label(),
+                         (spec.problem, spec.integrator))
              for i, spec in enumerate(specs) if records[i] is None]
     session = store.begin(suite, timing_note=note)
     bar = Progress(len(tasks) + len(targets), log, progress)

@@ -1,11 +1,13 @@
 """Suites as declarative TOML files under ``benchmarks/suites/``.
 
-A suite file has a ``description``, optional ``repeats`` and ``timeout`` (seconds per run),
-``[[group]]`` tables of runs and ``studies``; each group runs every combination of its
-lists::
+A suite file has a ``description``, optional ``repeats``, ``timeout`` (seconds per run) and
+``budget`` (seconds for the whole suite, report included, on the project's reference
+machine of two cores: what ``python -m benchmarks.suite_time`` holds it to), ``[[group]]``
+tables of runs and ``studies``; each group runs every combination of its lists::
 
     description = "the seed's experiment"
     timeout = 600
+    budget = 120
 
     [[group]]
     problems = ["sps-receiver"]
@@ -48,7 +50,8 @@ STUDIES: dict[str, str] = {
 NUMBER, STRINGS, NUMBERS = "a number", "a list of strings", "a list of numbers"
 #: Allowed keys and what they hold: top level, and per group.
 TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
-            "repeats": "a whole number", "timeout": NUMBER, "studies": STRINGS}
+            "repeats": "a whole number", "timeout": NUMBER, "budget": NUMBER,
+            "studies": STRINGS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
               "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
 
@@ -76,6 +79,7 @@ RANGES = {
     "t_end": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
     "timeout": (lambda x: x > 0, "a positive number of seconds (inf for no limit)"),
     "repeats": (lambda x: x >= 1, "at least 1"),
+    "budget": (lambda x: math.isfinite(x) and x > 0, "a positive number of seconds"),
 }
 
 
@@ -91,6 +95,7 @@ class Suite:
     repeats: int | None = None
     timeout: float | None = None
     studies: tuple[str, ...] = field(default=())
+    budget: float | None = None
 
 
 def names() -> list[str]:
@@ -216,4 +221,4 @@ def load(name: str) -> Suite:
                 RunSpec(r.problem, r.integrator, r.h, r.rtol, r.atol, r.t_end, timeout, r.origin)
                 for r in runs]
     return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
-                 timeout, studies)
+                 timeout, studies, float(data["budget"]) if "budget" in data else None)

@@ -253,13 +253,19 @@ def serve(fd: int, parent_pid: int, cpu: int) -> None:
 
 @dataclass
 class Task:
-    """One unit of work: ``kind`` selects the worker's handler (:data:`HANDLERS`)."""
+    """One unit of work: ``kind`` selects the worker's handler (:data:`HANDLERS`).
+
+    Tasks with the same ``affinity`` (such as the runs of one problem and method at
+    several step sizes) go to the same worker where they can, so that they share what it
+    compiled (see :meth:`Pool.run`).
+    """
 
     id: int
     kind: str
     payload: object
     time_limit: float | None
     label: str
+    affinity: object = None
 
 
 @dataclass
@@ -289,6 +295,7 @@ class _Slot:
     assigned: float = 0.0
     phase: str = ""
     done: int = 0
+    affinity: object = None
 
 
 class Pool:
@@ -336,7 +343,7 @@ class Pool:
         finally:
             theirs.close()
         slot.conn, slot.ready = Connection(ours.detach()), False
-        slot.started, slot.done, slot.phase = time.monotonic(), 0, ""
+        slot.started, slot.done, slot.phase, slot.affinity = time.monotonic(), 0, "", None
 
     def _retire(self, slot: _Slot, kill: bool) -> int | None:
         """End the slot's worker (``kill``: at once); return its exit code."""
@@ -383,14 +390,29 @@ class Pool:
                 slot.done += 1
         return ended, False
 
+    def _pick(self, slot: _Slot, queue: deque) -> Task:
+        """Take the next task for ``slot`` off ``queue``: the first with the affinity of the
+        slot's last task; else the first whose affinity no other slot is working on; else
+        the first."""
+        others = {s.affinity for s in self.slots if s is not slot and s.task is not None}
+        tests = ((lambda t: t.affinity is not None and t.affinity == slot.affinity),
+                 (lambda t: t.affinity is None or t.affinity not in others))
+        for test in tests:
+            for i, task in enumerate(queue):
+                if test(task):
+                    del queue[i]
+                    return task
+        return queue.popleft()
+
     def _assign(self, slot: _Slot, queue: deque, on_start) -> None:
         if slot.done >= MAX_TASKS_PER_WORKER:
             slot.conn.send(("stop",))
             self._retire(slot, kill=False)
             self._spawn(slot)
             return
-        task = queue.popleft()
+        task = self._pick(slot, queue)
         slot.task, slot.assigned, slot.phase = task, time.monotonic(), "hand-over"
+        slot.affinity = task.affinity
         slot.conn.send((task.kind, task.id, task.payload))
         if on_start is not None:
             on_start(task)

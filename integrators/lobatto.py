@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
@@ -111,7 +111,9 @@ class LobattoIIIAIIIB(Integrator):
                       "n_lin_solves": it}
             return (q1, p1, Lam[-1]), jnp.where(sol.converged, 0, 1), sol.residual, counts
 
-        q0 = jnp.asarray(case.q0)
-        carry0 = (q0, mech.momentum(q0, jnp.asarray(case.v0)), jnp.zeros(m))
+        # Compiled once; run eagerly, each autodiff operation would compile on its own.
+        carry0 = jax.jit(lambda q0, v0: (q0, mech.momentum(q0, v0), jnp.zeros(m)))(
+            jnp.asarray(case.q0), jnp.asarray(case.v0))
         return march(mech, grid, self.h, carry0, step,
-                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])))
+                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])),
+                     key=replace(self, h=None))

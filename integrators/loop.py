@@ -28,12 +28,22 @@ of the segment and the work counters; an outer loop (one iteration per segment, 
 the sample. The per-step work thus never touches the window and sample arrays: on
 sps-receiver that made the loop a fifth faster than updating them at every step under the
 flag, and twice as fast without it.
+
+Reuse
+-----
+The step size, the step count, the window count and the sample stride are arguments of
+the compiled loop, not constants in it (the window and sample arrays have the grid's
+fixed sizes), so one compilation serves every ``h``: :func:`march` keeps the compiled
+loops of the last :data:`CACHE_SIZE` methods (keyed by the method's options other than
+``h``, the :class:`Mechanics` object, ``t0`` and the grid's sizes) and a step-size sweep,
+or a run over another horizon, compiles once.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections import OrderedDict
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -52,6 +62,10 @@ CODES = {1: "the stage equations did not converge (Newton)", 2: "the state becam
 #: 1 kB, is below what one step of the smallest problem touches; the value here puts no
 #: practical limit on it.
 KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
+
+#: Compiled loops kept for reuse (each holds its executable; a sweep needs one).
+CACHE_SIZE = 8
+_LOOPS: OrderedDict = OrderedDict()
 
 #: The work counters a step increments (the loop counts the steps itself).
 WORK = tuple(key for key in COUNTERS if key != "n_steps")
@@ -99,34 +113,16 @@ def put(rows: jax.Array, i: jax.Array, row: jax.Array) -> jax.Array:
     return jax.lax.dynamic_update_index_in_dim(rows, row, i, 0)
 
 
-def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
-          observe: Callable[[Any], tuple[jax.Array, jax.Array]]) -> Callable[[], Trajectory]:
-    """Compile the time loop and return ``solve()``.
-
-    Parameters
-    ----------
-    carry0 : pytree
-        The method's state at ``t0`` (positions, momenta, warm starts...).
-    step : callable
-        ``step(carry, t, h) -> (carry1, code, residual, counts)``: one step from ``t``;
-        ``code`` is 0 on success or a key of :data:`CODES`; ``residual`` the final Newton
-        residual (for the message); ``counts`` increments of the work counters.
-    observe : callable
-        ``observe(carry) -> (q, v)``.
-
-    Returns
-    -------
-    solve : callable
-        ``solve() -> Trajectory``; its attribute ``compiled`` is the compiled loop (for
-        diagnostics such as whether XLA made it one kernel).
-    """
-    plan = Plan.make(grid, h)
-    t0, N, W, stride = grid.t0, plan.n_steps, plan.n_windows, plan.stride
-    n_inv = len(mech.system.invariants)
-
+def _loop(mech: Mechanics, grid: Grid, step: Step,
+          observe: Callable[[Any], tuple[jax.Array, jax.Array]]) -> Callable:
+    """The loop as a function of ``(carry0, h, N, W, stride)``: ``N`` steps of size ``h``
+    from ``grid.t0``, maxima over ``W`` windows, a sample every ``stride`` steps (in
+    arrays of the grid's sizes, of which the first ``W`` and ``N // stride + 1`` rows are
+    used)."""
+    t0, n_inv = grid.t0, len(mech.system.invariants)
     measure = measurer(mech)
 
-    def segment(k, carry, counts, stop, E0, I0):
+    def segment(k, carry, counts, stop, h, E0, I0):
         """Steps ``k .. stop - 1`` or up to the first failure; maxima of their measures.
 
         A failed step leaves ``carry`` and ``k`` at the last good step and stops the loop.
@@ -138,14 +134,14 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
 
         def body(state):
             k, carry, _, _, peak, counts = state
-            new, code, resid, inc = step(carry, t0 + k * plan.h, jnp.asarray(plan.h))
+            new, code, resid, inc = step(carry, t0 + k * h, h)
             q, v = observe(new)
             finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
             code = jnp.where(code != 0, code, jnp.where(finite, 0, 2)).astype(jnp.int32)
             good = code == 0
             carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
             k1 = k + good.astype(k.dtype)
-            m = measure(t0 + k1 * plan.h, q, v, E0, I0)
+            m = measure(t0 + k1 * h, q, v, E0, I0)
             peak = jnp.maximum(peak, jnp.where(good, m, 0.0))
             counts = counts + jnp.stack([jnp.asarray(inc.get(key, 0), jnp.int64)
                                          for key in WORK])
@@ -155,13 +151,13 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
                  jnp.zeros(3 + n_inv), counts)
         return jax.lax.while_loop(cond, body, state)
 
-    def run(carry0):
+    def run(carry0, h, N, W, stride):
         q0, v0 = observe(carry0)
         tz = jnp.asarray(t0, dtype=jnp.float64)
         E0, I0 = mech.energy(q0, v0), mech.invariant_values(q0, v0)
-        wins = jnp.zeros((W, 3 + n_inv)).at[0].set(measure(tz, q0, v0, E0, I0))
-        samp_q = jnp.zeros((plan.n_samples, mech.n)).at[0].set(q0)
-        samp_v = jnp.zeros((plan.n_samples, mech.n)).at[0].set(v0)
+        wins = jnp.zeros((grid.n_windows, 3 + n_inv)).at[0].set(measure(tz, q0, v0, E0, I0))
+        samp_q = jnp.zeros((grid.n_samples, mech.n)).at[0].set(q0)
+        samp_v = jnp.zeros((grid.n_samples, mech.n)).at[0].set(v0)
         counts = jnp.zeros(len(WORK), jnp.int64)
 
         def cond(state):
@@ -174,7 +170,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             # // W; the segment also ends where the next sample is due.
             w = k * W // N
             stop = jnp.minimum(((w + 1) * N + W - 1) // W, (k // stride + 1) * stride)
-            k, carry, code, resid, peak, counts = segment(k, carry, counts, stop, E0, I0)
+            k, carry, code, resid, peak, counts = segment(k, carry, counts, stop, h, E0, I0)
             wins = put(wins, w, jnp.maximum(wins[w], peak))
             # The state after k steps goes to slot k // stride when k is a multiple of the
             # stride, where segments end; a segment that failed at its first step writes
@@ -191,11 +187,56 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         q, v = observe(carry)
         return k, code, resid, q, v, wins, samp_q, samp_v, counts
 
-    compiled = jax.jit(run).lower(carry0).compile()
+    return run
+
+
+def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
+          observe: Callable[[Any], tuple[jax.Array, jax.Array]],
+          key: tuple | None = None) -> Callable[[], Trajectory]:
+    """Compile the time loop (or reuse it) and return ``solve()``.
+
+    Parameters
+    ----------
+    carry0 : pytree
+        The method's state at ``t0`` (positions, momenta, warm starts...).
+    step : callable
+        ``step(carry, t, h) -> (carry1, code, residual, counts)``: one step from ``t``;
+        ``code`` is 0 on success or a key of :data:`CODES`; ``residual`` the final Newton
+        residual (for the message); ``counts`` increments of the work counters.
+    observe : callable
+        ``observe(carry) -> (q, v)``.
+    key : tuple, optional
+        What ``step`` and ``observe`` depend on besides ``mech`` and ``h`` (the method and
+        its other options). With a key, the compiled loop is reused by later calls with
+        the same key, ``mech``, ``t0`` and grid sizes; without one it is compiled afresh.
+
+    Returns
+    -------
+    solve : callable
+        ``solve() -> Trajectory``; its attribute ``compiled`` is the compiled loop (for
+        diagnostics such as whether XLA made it one kernel).
+    """
+    plan = Plan.make(grid, h)
+    # t_end is not in the loop (N is an argument): other horizons share it.
+    cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples)
+    compiled = _LOOPS.get(cache_key) if cache_key is not None else None
+    args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
+            jnp.int64(plan.stride))
+    if compiled is None:
+        compiled = jax.jit(_loop(mech, grid, step, observe)).lower(*args).compile()
+        if cache_key is not None:
+            _LOOPS[cache_key] = compiled
+            while len(_LOOPS) > CACHE_SIZE:
+                _LOOPS.popitem(last=False)
+    else:
+        _LOOPS.move_to_end(cache_key)
+    t0 = grid.t0
 
     def solve() -> Trajectory:
-        out = jax.block_until_ready(compiled(carry0))
+        out = jax.block_until_ready(compiled(*args))
         k, code, resid, q, v, wins, samp_q, samp_v, counts = jax.device_get(out)
+        wins = wins[:plan.n_windows]
+        samp_q, samp_v = samp_q[:plan.n_samples], samp_v[:plan.n_samples]
         k, code = int(k), int(code)
         assert q.dtype == np.float64, "the loop must run in float64"
         t_final = t0 + k * plan.h

@@ -85,8 +85,12 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     more exits count as converged because no further iteration can gain anything: the
     correction is at round-off (``||dz||_inf <= 4 eps (1 + ||z||_inf)``), or the residual
     has stopped contracting (less than halved) within a thousand times its round-off floor
-    ``max(tol, eps (1 + ||z||_inf))``. A ``tol`` below round-off (such as 1e-16) therefore
-    means "iterate to round-off".
+    ``max(tol, eps (1 + max_i sum_j |J_ij| |z_j|))``,
+    the rounding error of evaluating a residual whose terms have the magnitudes
+    ``|J_ij z_j|`` (``J`` the last Jacobian). Scaling with the terms, not with ``|z|``
+    alone, matters where large forces cancel (stiff springs, large multipliers): there the
+    residual cannot fall below ``eps`` times those forces. A ``tol`` below round-off (such
+    as 1e-16) therefore means "iterate to round-off".
 
     Returns the iterate, whether it converged, the number of iterations (each one
     Jacobian evaluation and one LU solve) and the final residual norm.
@@ -95,22 +99,25 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     def norm(x):
         return jnp.max(jnp.abs(x))
 
-    def done(z, r, r_prev, dz_norm):
-        floor = jnp.maximum(tol, EPS * (1.0 + norm(z)))
+    def done(z, r, r_prev, dz_norm, terms):
+        floor = jnp.maximum(tol, EPS * (1.0 + terms))
         stalled = (norm(r) > 0.5 * r_prev) & (norm(r) <= 1e3 * floor)
         return (norm(r) <= tol) | (dz_norm <= 4 * EPS * (1.0 + norm(z))) | stalled
 
     def cond(state):
-        z, r, r_prev, dz_norm, it = state
-        return (~done(z, r, r_prev, dz_norm)) & (it < max_iter) & jnp.all(jnp.isfinite(r))
+        z, r, r_prev, dz_norm, terms, it = state
+        return ((~done(z, r, r_prev, dz_norm, terms)) & (it < max_iter)
+                & jnp.all(jnp.isfinite(r)))
 
     def body(state):
-        z, r, _, _, it = state
-        dz = solve(jax.jacfwd(residual)(z), -r)
+        z, r, _, _, _, it = state
+        J = jax.jacfwd(residual)(z)
+        dz = solve(J, -r)
+        terms = jnp.max(jnp.abs(J) @ jnp.abs(z))
         z = z + dz
-        return z, residual(z), norm(r), norm(dz), it + 1
+        return z, residual(z), norm(r), norm(dz), terms, it + 1
 
-    z, r, r_prev, dz_norm, it = jax.lax.while_loop(
-        cond, body, (z0, residual(z0), jnp.inf, jnp.inf, 0))
-    converged = done(z, r, r_prev, dz_norm) & jnp.all(jnp.isfinite(z))
+    z, r, r_prev, dz_norm, terms, it = jax.lax.while_loop(
+        cond, body, (z0, residual(z0), jnp.inf, jnp.inf, norm(z0), 0))
+    converged = done(z, r, r_prev, dz_norm, terms) & jnp.all(jnp.isfinite(z))
     return NewtonResult(z, converged, it, norm(r))

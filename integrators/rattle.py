@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
@@ -105,9 +105,13 @@ class Rattle(Integrator):
                       "n_newton": it, "n_lin_solves": it + 1}
             return (q1, p1, F1, G1, sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
 
-        q0 = jnp.asarray(case.q0)
-        p0 = mech.momentum(q0, jnp.asarray(case.v0))
-        t0 = jnp.asarray(grid.t0)
-        carry0 = (q0, p0, F(t0, q0, p0), mech.G(q0, t0), jnp.zeros(m))
+        # Compiled once; run eagerly, each autodiff operation would compile on its own.
+        @jax.jit
+        def start(q0, v0, t0):
+            p0 = mech.momentum(q0, v0)
+            return q0, p0, F(t0, q0, p0), mech.G(q0, t0), jnp.zeros(m)
+
+        carry0 = start(jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0))
         return march(mech, grid, self.h, carry0, step,
-                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])))
+                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])),
+                     key=replace(self, h=None))

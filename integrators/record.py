@@ -68,9 +68,9 @@ def reference_values(q, v, *, mech: Mechanics):
 class Recorder:
     """Per-window maxima and bounded samples of the points of one run.
 
-    Build once in ``prepare`` (it compiles the batched measurement), call :meth:`start`
-    at the beginning of every solve, feed points with :meth:`add` or :meth:`extend`, and
-    finish with :meth:`trajectory`.
+    Build once in ``prepare`` (it compiles the measurements, so that no solve pays for
+    them), call :meth:`start` at the beginning of every solve, feed points with
+    :meth:`add` or :meth:`extend`, and finish with :meth:`trajectory`.
     """
 
     def __init__(self, mech: Mechanics, grid: Grid):
@@ -85,6 +85,8 @@ class Recorder:
             spec((self.rows,), f64), spec((self.rows, self.n), f64),
             spec((self.rows, self.n), f64), spec((), f64), spec((n_inv,), f64),
             mech=mech).compile()
+        self._reference = reference_values.lower(
+            spec((self.n,), f64), spec((self.n,), f64), mech=mech).compile()
         self.span = grid.t_end - grid.t0
         self.n_samples = max(2, grid.n_samples)
         self._t = np.empty(self.rows)
@@ -93,7 +95,7 @@ class Recorder:
 
     def start(self, t0: float, q0: np.ndarray, v0: np.ndarray) -> None:
         """Reset, take ``H0`` and the invariants at the initial point, and record it."""
-        E0, I0 = reference_values(jnp.asarray(q0), jnp.asarray(v0), mech=self.mech)
+        E0, I0 = self._reference(jnp.asarray(q0, jnp.float64), jnp.asarray(v0, jnp.float64))
         self._E0, self._I0 = np.float64(E0), np.asarray(I0, dtype=np.float64)
         W = self.grid.n_windows
         self.wins = np.zeros((W, len(self.names)))

@@ -37,17 +37,22 @@ Rank deficiency, per integrator family (what this suite does with it):
 
 * RATTLE and Lobatto IIIA-IIIB: the Newton and projection matrices are singular; the
   shared linear solve (:func:`integrators.newton.solve`) detects the round-off pivot of
-  LU and switches to the minimum-norm least-squares solution, so these methods run and
-  hold ``g = 0`` to the Newton tolerance.
+  the equilibrated LU and switches to a rank-revealing solve (QR with column pivoting),
+  so these methods run and hold ``g = 0`` to the Newton tolerance.
 * Baumgarte-stabilised RK: :meth:`Mechanics.accelerations` detects the singular Schur
-  complement ``G M^{-1} G^T`` and uses least squares (minimum-norm multipliers).
-* IDA: its own dense LU factorises the singular iteration matrix; it is not changed here,
-  so these runs fail in SUNDIALS' linear solver (see the case's ``notes``).
+  complement ``G M^{-1} G^T`` and takes its minimum-norm least-squares solution. Off the
+  constraint manifold the redundancy is only approximate and the multipliers of the
+  nearly dependent direction feed the drift: RK4 blows up at ``h = 0.005`` and above and
+  needs ``h = 0.001``.
+* IDA: SUNDIALS' dense LU would factorise the singular iteration matrix without notice
+  and return meaningless states, so the IDA integrator checks the rank of ``G(q0)`` and
+  fails with a message that names the rank deficiency.
 
 Reference (computed, :mod:`problems.data`): the index-1 ODE of this System (accelerations
-with minimum-norm multipliers) integrated by scipy's DOP853 at ``rtol = 2.5e-14``, stored
-in ``problems/data/bricard.json`` at ``t`` = 1, 5 and 10 with error estimates; regenerate
-with ``python -m problems.data.generate bricard``.
+with minimum-norm multipliers) integrated by scipy's DOP853 at ``rtol = 2.5e-14``, the
+states projected back onto the constraints, stored in ``problems/data/bricard.json`` at
+``t`` = 1, 5 and 10 with error estimates; regenerate with ``python -m problems.data.generate
+bricard``.
 """
 
 from __future__ import annotations

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Callable, Mapping
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -82,12 +84,20 @@ class Case:
                     self.params, self.energy_scale, self.reference, self.notes)
 
 
+@partial(jax.jit, static_argnames="mech")
+def _residuals(q, v, t, *, mech: Mechanics):
+    # One compiled function: evaluated eagerly, the autodiff Jacobian in ``vel_residual``
+    # compiles each of its dozens of primitive operations on its own (seconds per case).
+    return (jnp.max(jnp.abs(mech.g(q, t)), initial=0.0),
+            jnp.max(jnp.abs(mech.vel_residual(q, v, t)), initial=0.0))
+
+
 def residuals(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float) -> tuple[float, float]:
     """Max-norms of ``g(q, t)`` and ``G v + g_t``."""
-    t = jnp.asarray(t, dtype=jnp.float64)
-    pos = float(jnp.max(jnp.abs(mech.g(jnp.asarray(q), t)), initial=0.0))
-    vel = float(jnp.max(jnp.abs(mech.vel_residual(jnp.asarray(q), jnp.asarray(v), t)), initial=0.0))
-    return pos, vel
+    f64 = jnp.float64
+    pos, vel = _residuals(jnp.asarray(q, f64), jnp.asarray(v, f64), jnp.asarray(t, f64),
+                          mech=mech)
+    return float(pos), float(vel)
 
 
 def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,

@@ -195,7 +195,7 @@ class Mechanics:
         """Accelerations and multipliers from the index-1 system.
 
         Solves ``[M G^T; G 0] [a; lam] = [force; -gamma - stab]`` through the Schur
-        complement ``G M^{-1} G^T`` (m x m, Cholesky; rank-revealing QR when redundant
+        complement ``G M^{-1} G^T`` (m x m, Cholesky; least squares when redundant
         constraints make it singular, see :meth:`schur_solve`). ``stab`` is an extra
         acceleration-level right-hand side (Baumgarte terms); ``None`` means zero.
 
@@ -215,16 +215,16 @@ class Mechanics:
 
     @staticmethod
     def schur_solve(S: Array, rhs: Array) -> Array:
-        """``S^{-1} rhs`` for ``S = G M^{-1} G^T`` by Cholesky, or rank-revealing if singular.
+        """``S^{-1} rhs`` for ``S = G M^{-1} G^T`` by Cholesky, or by least squares if singular.
 
         Redundant constraints (``G`` of rank below ``m``) make ``S`` positive semidefinite
         only: its Cholesky factor then has a pivot at round-off level or breaks down (NaN).
         ``S`` is first scaled symmetrically to unit diagonal (``D S D``, so that constraints
         in different units are not taken for rank deficiency); when the smallest squared
         pivot of its Cholesky factor is below ``1e-12`` times the largest (or not finite),
-        a basic solution by QR with column pivoting is used instead: the columns of
-        dependent constraints (``|R_kk|`` below 1e-12 of the largest) get zero multipliers
-        and the others give ``G^T lam``, the unique constraint force.
+        the minimum-norm least-squares solution (SVD, singular values below ``1e-12`` of the
+        largest dropped) of the scaled system is used instead: its multipliers give
+        ``G^T lam``, the unique constraint force. (``S`` is m x m, so the SVD is cheap.)
         """
         d = jnp.diag(S)
         D = jnp.where(d > 0, 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0)), 1.0)
@@ -232,15 +232,8 @@ class Mechanics:
         factor = jax.scipy.linalg.cho_factor(Ss, lower=True)
         pivots = jnp.diag(factor[0]) ** 2
         deficient = ~(jnp.min(pivots) > 1e-12 * jnp.max(pivots))
-
-        def basic():
-            Q, R, perm = jax.scipy.linalg.qr(Ss, pivoting=True)
-            keep = jnp.abs(jnp.diag(R)) > 1e-12 * jnp.abs(R[0, 0])
-            R = jnp.where(keep[:, None], R, jnp.eye(S.shape[0]))
-            y = jax.scipy.linalg.solve_triangular(R, jnp.where(keep, Q.T @ (D * rhs), 0.0))
-            return jnp.zeros_like(y).at[perm].set(y)
-
-        y = jax.lax.cond(deficient, basic, lambda: jax.scipy.linalg.cho_solve(factor, D * rhs))
+        y = jax.lax.cond(deficient, lambda: jnp.linalg.lstsq(Ss, D * rhs, rcond=1e-12)[0],
+                         lambda: jax.scipy.linalg.cho_solve(factor, D * rhs))
         return D * y
 
     def invariant_values(self, q: Array, v: Array) -> Array:

@@ -1,8 +1,10 @@
 """The report's figures, drawn with matplotlib's object API and returned as SVG text.
 
 No pyplot: figures are built directly, so the report neither touches the global backend
-nor keeps figures alive. Text is drawn as paths (``svg.fonttype = path``), so an SVG needs
-no font; ids are salted deterministically so that the same data give the same file.
+nor keeps figures alive. Text stays text (``svg.fonttype = none``): the browser's
+sans-serif font draws it, it can be searched and copied, and the report builds faster than
+with glyphs as paths. Ids are salted deterministically so that the same data give the same
+file.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import math
 import numpy as np
 from matplotlib import rc_context
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatter
 
 from reports.analysis import COST, PRECISION, Convergence, fmt
 
@@ -20,9 +23,11 @@ from reports.analysis import COST, PRECISION, Convergence, fmt
 LOG_FLOOR = 1e-17
 #: Top of the per-step violation axis: a blown-up run would squeeze every other line.
 VIOLATION_TOP = 10.0
-RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "path", "font.size": 8,
+RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "none", "font.size": 8,
       "axes.grid": True, "grid.alpha": 0.3, "legend.fontsize": 7, "axes.titlesize": 9}
 MARKERS = "os^Dv<>pP*Xh"
+#: Height of one row of a figure legend, inches (legend font 7 pt and its spacing).
+LEGEND_ROW = 0.2
 
 
 def palette(keys) -> dict[str, tuple]:
@@ -34,19 +39,53 @@ def palette(keys) -> dict[str, tuple]:
 
 
 def _svg(fig: Figure) -> str:
+    # Plain tick labels on log axes ("1e-05", not mathtext): typesetting mathtext labels
+    # was most of the report's build time.
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() == "log":
+                axis.set_major_formatter(LogFormatter(10.0))
+                axis.set_minor_formatter(LogFormatter(10.0, labelOnlyBase=False))
     buf = io.StringIO()
     # A run that blew up (|g| near 1e300) overflows the log axis' tick arithmetic; the
     # ticks that overflow are dropped, which is all that can be drawn there.
     with rc_context(RC), np.errstate(over="ignore"):
-        fig.savefig(buf, format="svg", metadata={"Date": None}, bbox_inches="tight")
+        fig.savefig(buf, format="svg", metadata={"Date": None})
     return buf.getvalue()
 
 
 def _figure(rows: int, cols: int, width: float, height: float) -> tuple[Figure, np.ndarray]:
     with rc_context(RC):
-        fig = Figure(figsize=(width, height), layout="constrained")
+        fig = Figure(figsize=(width, height))
         axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False))
     return fig, axes
+
+
+def _arrange(fig: Figure, rows: int, cols: int, legend: tuple | None = None, ncols: int = 1,
+             side: float = 0.0) -> None:
+    """Fixed margins in inches, and the figure legend below the axes or at their right.
+
+    A layout engine (constrained or tight) measures every tick label to fit the margins,
+    which doubled the report's build time; the labels here have bounded widths (log-axis
+    labels such as ``1e-05``), so fixed margins fit them. ``legend`` is ``(handles,
+    labels)``: below the axes in ``ncols`` columns (the figure grows by its height), or,
+    with ``side`` inches reserved, at the right.
+    """
+    width, height = fig.get_size_inches()
+    left, right, top, bottom, wgap, hgap = 0.8, 0.2 + side, 0.6, 0.5, 0.9, 0.65
+    if legend and legend[1] and not side:
+        grow = 0.15 + LEGEND_ROW * math.ceil(len(legend[1]) / ncols)
+        height += grow
+        bottom += grow
+        fig.set_size_inches(width, height)
+        fig.legend(*legend, loc="lower center", ncols=ncols, bbox_to_anchor=(0.5, 0.0))
+    elif legend and legend[1]:
+        fig.legend(*legend, loc="upper left",
+                   bbox_to_anchor=(1.0 - (side + 0.1) / width, 1.0 - top / height))
+    axis_w = (width - left - right - (cols - 1) * wgap) / cols
+    axis_h = (height - top - bottom - (rows - 1) * hgap) / rows
+    fig.subplots_adjust(left=left / width, right=1.0 - right / width, top=1.0 - top / height,
+                        bottom=bottom / height, wspace=wgap / axis_w, hspace=hgap / axis_h)
 
 
 def _floor(y) -> np.ndarray:
@@ -94,8 +133,7 @@ def drift(entries: list[dict], colors: dict, title: str) -> str:
         handles, labels = axes[0, 0].get_legend_handles_labels()
         if not handles:
             handles, labels = axes[0, 1].get_legend_handles_labels()
-        if handles:
-            fig.legend(handles, labels, loc="outside lower center", ncols=min(3, len(labels)))
+        _arrange(fig, 1, 2, (handles, labels), ncols=3)
         fig.suptitle(title)
         return _svg(fig)
 
@@ -131,8 +169,7 @@ def work_precision(runs, colors: dict, title: str) -> str:
                 if lab not in labels:
                     handles.append(h)
                     labels.append(lab)
-        if handles:
-            fig.legend(handles, labels, loc="outside lower center", ncols=min(5, len(labels)))
+        _arrange(fig, len(PRECISION), len(COST), (handles, labels), ncols=5)
         fig.suptitle(title)
         return _svg(fig)
 
@@ -165,6 +202,7 @@ def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) 
         else:
             _empty(ax, "no finished fixed-step runs")
         ax.set_title(basis, fontsize=7)
+        _arrange(fig, 1, 1)
         fig.suptitle(title)
         return _svg(fig)
 
@@ -199,6 +237,7 @@ def ring_snapshots(snapshots: list[tuple[float, float, float]], title: str) -> s
             ax.legend(loc="lower right", fontsize=6)
         for ax in list(axes.flat)[len(snapshots):]:
             ax.set_visible(False)
+        _arrange(fig, rows, cols)
         fig.suptitle(title)
         return _svg(fig)
 
@@ -226,6 +265,6 @@ def step_violation(entries: list[dict], colors: dict, title: str, claim: float) 
         ax.set_ylim(values.min() / 3.0, min(values.max(), VIOLATION_TOP) * 3.0)
         ax.set_xlabel("t")
         ax.set_ylabel("|g(q_n)|")
-        fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+        _arrange(fig, 1, 1, ax.get_legend_handles_labels(), side=2.6)
         fig.suptitle(title)
         return _svg(fig)

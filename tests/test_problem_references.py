@@ -21,6 +21,13 @@ def test_andrews_positions_to_nine_digits():
     assert np.max(traj.windows["energy"]) <= 1e-6 * case.energy_scale
 
 
+def test_andrews_positions_to_nine_digits_by_a_second_family():
+    # Baumgarte-stabilised DOPRI8 (an explicit, adaptive family) at a tight tolerance.
+    case, traj = solve("andrews", "baumgarte-dopri8", rtol=1e-11, atol=1e-13)
+    _, scd = reference_error(case, traj)
+    assert scd >= 9.0
+
+
 def test_car_axis_all_ten_components_of_version_b():
     from problems.car_axis import REF_LAMBDA, REF_Y
 

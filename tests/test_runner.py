@@ -141,3 +141,20 @@ def test_suite_timeouts_group_overrides_suite(tmp_path):
     suite = suites.load(str(path))
     assert [r.timeout for r in suite.runs] == [100.0, 7.0]
     assert suite.runs[1].origin.startswith(f"{path}:8")
+
+
+def test_runs_of_one_problem_and_method_stay_on_one_worker():
+    from collections import deque
+
+    pool = worker.Pool(2)  # no worker starts until tasks are run
+    mine, other = pool.slots
+    mine.affinity = "a"
+    other.task = worker.Task(99, "run", None, None, "busy", "b")
+    other.affinity = "b"
+    queue = deque(worker.Task(i, "run", None, None, str(i), key)
+                  for i, key in enumerate(["b", "a", "c", "b", "a"]))
+    # Its own affinity first, wherever it stands in the queue ...
+    assert [pool._pick(mine, queue).id for _ in range(2)] == [1, 4]
+    # ... then the first task no other worker is on, and only then the rest, in order.
+    mine.affinity = "a-done"
+    assert [pool._pick(mine, queue).id for _ in range(3)] == [2, 0, 3]

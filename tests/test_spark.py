@@ -98,3 +98,27 @@ def test_pendulum_a01_long_horizon_reference_is_periodic():
     period = 4 * 1.8540746773013719 / np.sqrt(9.81)  # 4 K(1/2) / omega
     q, v = case.reference.solution(843 * period)
     assert np.allclose(q, [1.0, 0.0], atol=1e-10) and np.allclose(v, 0.0, atol=1e-9)
+
+
+def test_a_step_size_sweep_reuses_one_compiled_loop_with_identical_results():
+    from integrators import loop
+
+    case = problems.make("sps-receiver", t_end=5.0)
+    grid = Grid(case.t0, case.t_end)
+    loop._LOOPS.clear()
+    first = integrators.make("lobatto3ab3", h=0.1).prepare(case, grid)
+    second = integrators.make("lobatto3ab3", h=0.05).prepare(case, grid)
+    other = integrators.make("lobatto3ab3:newton_tol=1e-12", h=0.05).prepare(case, grid)
+    longer = integrators.make("lobatto3ab3", h=0.1).prepare(case.with_t_end(10.0),
+                                                            Grid(case.t0, 10.0))
+    assert second.compiled is first.compiled  # only h differs: one compilation
+    assert longer.compiled is first.compiled  # so does t_end
+    assert other.compiled is not first.compiled  # another option: another loop
+    reused = second()
+    assert reused.counts["n_steps"] == 100 and reused.t_final == pytest.approx(5.0)
+    loop._LOOPS.clear()
+    fresh = integrators.make("lobatto3ab3", h=0.05).prepare(case, grid)()
+    assert np.array_equal(reused.q_final, fresh.q_final)
+    for name in fresh.windows:
+        assert np.array_equal(reused.windows[name], fresh.windows[name]), name
+    assert np.array_equal(reused.samples["q"], fresh.samples["q"])

@@ -81,6 +81,8 @@ SUITE_FILES = [
      ["unknown study 'flexible-modl'", "flexible-modal"]),
     ("timeout-negative", 'timeout = -3\n[[group]]\nproblems = ["pendulum"]\n'
                          'integrators = ["rattle"]\n', 1, ["timeout", "-3", "positive"]),
+    ("budget-zero", 'description = "x"\nbudget = 0\n[[group]]\nproblems = ["pendulum"]\n'
+                    'integrators = ["rattle"]\n', 2, ["budget", "positive number of seconds"]),
     ("repeats-boolean", 'repeats = true\n[[group]]\nproblems = ["pendulum"]\n'
                         'integrators = ["rattle"]\n', 1, ["'repeats' must be a whole number"]),
     ("empty", 'description = "nothing"\n', 0, ["no [[group]] table and no studies"]),

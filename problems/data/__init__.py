@@ -3,8 +3,9 @@
 Each ``NAME.json`` here holds the command that regenerates it (``python -m
 problems.data.generate NAME``), the method, and a list of entries: the problem parameters,
 the time, the reference ``q`` and ``v`` and an estimate of their error (the max-norm
-difference between two runs at different tolerances). :func:`lookup` finds the entry for a
-case's parameters; a case without one has no reference.
+difference between two runs at different tolerances). :func:`reference` turns the entries
+for a case's parameters into its :class:`~problems.case.Reference`; a case without stored
+entries has no reference.
 """
 
 from __future__ import annotations
@@ -29,20 +30,12 @@ def load(name: str) -> dict:
     return json.loads(path.read_text())
 
 
-def lookup(name: str, params: dict, t: float) -> dict | None:
-    """The entry of ``NAME.json`` with exactly these parameters at time ``t``, or None."""
-    for entry in load(name)["entries"]:
-        if entry["params"] == params and abs(entry["t"] - t) <= 1e-12 * max(1.0, abs(t)):
-            return entry
-    return None
-
-
 def state(entry: dict) -> tuple[np.ndarray, np.ndarray]:
     """``(q, v)`` of an entry as float64 arrays."""
     return np.array(entry["q"], dtype=np.float64), np.array(entry["v"], dtype=np.float64)
 
 
-def reference(name: str, params: dict):
+def reference(name: str, params: dict) -> Reference | None:
     """The stored computed reference of ``NAME.json`` for ``params`` (None if not stored).
 
     Scored on every component of ``(q, v)``, at the stored times only.
