@@ -80,8 +80,9 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
     return (f"{len(current)} runs shown (the latest of each problem, integrator, setting and "
             f"horizon) out of {len(runs)} stored, over {runs['session'].nunique()} invocations; "
             f"{n_bad} of those shown did not finish (status failed, error or timeout). Wall "
-            f"times are medians of repeated solves on the machine named in the provenance "
-            f"section and are only comparable within one invocation.")
+            f"times are the median of each run's timed solves (runs.csv's repeats column "
+            f"counts them) on the machine named in the provenance section and are only "
+            f"comparable within one invocation.")
 
 
 # --------------------------------------------------------------------------- headline
