@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import signal
 import sys
 from pathlib import Path
@@ -97,15 +96,11 @@ def listing() -> str:
     return "\n".join(lines)
 
 
-#: Command-line numbers: option -> (test of one value, what each value must be).
+#: Command-line numbers: option -> (test of one value, what each value must be); the same
+#: ranges as in suite files, and ``--jobs``.
 ARGUMENT_RANGES = {
-    "h": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
-    "rtol": (lambda x: 0 < x < 1, "in (0, 1)"),
-    "atol": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
-    "t_end": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
-    "timeout": (lambda x: x > 0, "a positive number of seconds (inf for no limit)"),
+    **{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout", "repeats")},
     "jobs": (lambda x: x >= 1, "at least 1"),
-    "repeats": (lambda x: x >= 1, "at least 1"),
 }
 
 

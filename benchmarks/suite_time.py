@@ -30,7 +30,7 @@ from pathlib import Path
 from benchmarks import suites
 
 
-def measure(name: str, out: Path, jobs: int | None = None) -> dict:
+def measure(name: str, budget: float | None, out: Path, jobs: int | None = None) -> dict:
     """Run suite ``name`` into ``out`` (which must not hold a store) and time it."""
     command = [sys.executable, "-m", "benchmarks.run", "--suite", name, "--out", str(out)]
     if jobs is not None:
@@ -43,7 +43,6 @@ def measure(name: str, out: Path, jobs: int | None = None) -> dict:
     if (out / "runs.csv").exists():
         with open(out / "runs.csv", newline="") as f:
             statuses.update(row["status"] for row in csv.DictReader(f))
-    budget = suites.load(name).budget
     return {"suite": name, "wall_s": wall, "budget_s": budget, "exit": done.returncode,
             "statuses": dict(statuses), "load_before": load_before,
             "load_after": os.getloadavg()[0],
@@ -54,21 +53,21 @@ def measure(name: str, out: Path, jobs: int | None = None) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.suite_time",
                                 description=__doc__.split("\n")[0])
-    p.add_argument("suites", nargs="+", help="suite names")
+    p.add_argument("suites", nargs="+", help="suite names or paths")
     p.add_argument("--jobs", type=int, help="passed on to benchmarks.run (default: its own)")
     p.add_argument("--out", type=Path, help="keep each suite's output under OUT/NAME and a "
                                            "JSON summary in OUT/suite_time.json")
     args = p.parse_args(argv)
-    for name in args.suites:
-        suites.load(name)  # a bad name fails here, before anything runs
+    # A bad name or suite file fails here, before anything runs.
+    loaded = {name: suites.load(name) for name in args.suites}
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.out or Path(tmp)
         for name in args.suites:
-            out = root / name
+            out = root / loaded[name].name  # the file's stem, also for a suite given by path
             if (out / "driftbench.sqlite").exists():
                 p.error(f"{out} already holds a store: give a fresh --out")
-            results.append(measure(name, out, args.jobs))
+            results.append(measure(name, loaded[name].budget, out, args.jobs))
     if args.out:
         (args.out / "suite_time.json").write_text(json.dumps(results, indent=1))
     print(f"{'suite':<14} {'wall [s]':>9} {'budget [s]':>10} {'load before/after':>18}  statuses")

@@ -257,7 +257,7 @@ class Task:
 
     Tasks with the same ``affinity`` (such as the runs of one problem and method at
     several step sizes) go to the same worker where they can, so that they share what it
-    compiled (see :meth:`Pool.run`).
+    compiled (see :meth:`Pool._pick`).
     """
 
     id: int

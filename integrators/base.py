@@ -10,6 +10,7 @@ states. Failure is data: a run that cannot go on ends with a status and a messag
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Callable, ClassVar
 
@@ -83,6 +84,12 @@ class Integrator:
     """
 
     adaptive: ClassVar[bool] = False
+
+    def __post_init__(self):
+        # An adaptive method's ``atol`` defaults to NaN, which stands for "equal to rtol".
+        atol = getattr(self, "atol", None)
+        if isinstance(atol, float) and math.isnan(atol):
+            object.__setattr__(self, "atol", self.rtol)
 
     @property
     def order(self) -> int | None:

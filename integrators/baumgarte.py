@@ -415,10 +415,6 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
     dtmax: float = math.inf
     max_steps: int = 10_000_000
 
-    def __post_init__(self):
-        if isinstance(self.atol, float) and math.isnan(self.atol):
-            object.__setattr__(self, "atol", self.rtol)
-
     def check(self) -> None:
         super().check()
         name = type(self).__name__

@@ -280,10 +280,6 @@ class IDA(Integrator):
     linsolver: str = "dense"
     jacobian: str = "autodiff"
 
-    def __post_init__(self):
-        if isinstance(self.atol, float) and math.isnan(self.atol):
-            object.__setattr__(self, "atol", self.rtol)
-
     @property
     def order(self) -> int:
         return self.max_order

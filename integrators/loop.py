@@ -4,7 +4,13 @@ The loop owns the bookkeeping so that methods only supply a pure ``step``: it me
 ``|g|``, ``|G v + g_t|``, ``|H - H0|`` and the declared invariants at every step, keeps
 their per-window maxima and a bounded set of sampled states, counts work and stops at the
 first failed step. Everything runs inside compiled ``lax.while_loop``\\ s: no Python per
-step, and memory independent of the number of steps.
+step, and memory independent of the number of steps. The metrics themselves
+(:mod:`benchmarks.metrics`) are computed from these records after the solve; taking the
+per-step values inside the loop is what keeps memory bounded (keeping every state for
+later would not), and its cost is part of the timed solve: measured as the median of
+three solves with the measurement replaced by zeros, about 6% of RATTLE's time on
+sps-receiver and 19% on the pendulum (the cheapest steps), and within the timing noise
+for lobatto3ab3.
 
 Speed
 -----

@@ -144,3 +144,23 @@ def test_sigterm_stops_the_workers_and_keeps_the_store(tmp_path):
     assert "interrupted (SIGTERM)" in stderr and "Traceback" not in stderr
     wait_for(lambda: not marked_processes(marker), 20, "the workers to end")
     assert integrity(db) == "ok"
+
+
+def test_suite_time_holds_each_suite_to_its_budget(tmp_path, capsys):
+    import json
+
+    from benchmarks import suite_time
+
+    body = ('[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\nh = [0.01]\n'
+            't_end = 1.0\n')
+    roomy, tight = tmp_path / "roomy.toml", tmp_path / "tight.toml"
+    roomy.write_text(f"budget = 600\nrepeats = 1\n{body}")
+    tight.write_text(f"budget = 0.01\nrepeats = 1\n{body}")
+    out = tmp_path / "out"
+    assert suite_time.main([str(roomy), str(tight), "--jobs", "1", "--out", str(out)]) == 1
+    results = {Path(r["suite"]).stem: r for r in
+               json.loads((out / "suite_time.json").read_text())}
+    for name in ("roomy", "tight"):
+        assert results[name]["exit"] == 0 and results[name]["statuses"] == {"ok": 1}
+    assert results["roomy"]["within"] and not results["tight"]["within"]
+    assert "OVER BUDGET" in capsys.readouterr().out
