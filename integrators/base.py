@@ -54,7 +54,10 @@ class Trajectory:
     entry per declared invariant (``"inv:NAME"``) to arrays of per-window maxima; windows no
     step reached are dropped. ``samples`` holds ``"t"``, ``"q"`` and ``"v"``. ``sampling``
     says where residuals were measured (``"every step"``, ``"every internal step"`` or a
-    dense output grid).
+    dense output grid). ``linear_solver`` names the linear algebra that ran (``"dense"``, or
+    the structured solver chosen from the sparsity of the constraints, see
+    :mod:`integrators.structure`) and ``pattern_nnz`` the number of structural nonzeros of
+    the constraint Jacobian ``G`` (``None`` where no pattern was needed).
     """
 
     status: str
@@ -69,6 +72,8 @@ class Trajectory:
     fail_step: int | None = None
     fail_time: float | None = None
     extra: dict[str, float] = field(default_factory=dict)
+    linear_solver: str = "dense"
+    pattern_nnz: int | None = None
 
 
 @dataclass(frozen=True)
