@@ -74,14 +74,17 @@ CODES = {
 }
 
 
-def baumgarte_field(mech: Mechanics, alpha: float, beta: float):
-    """The stabilised first-order ODE ``y' = (v, a)`` for ``y = (q, v)``."""
+def baumgarte_field(mech: Mechanics, alpha: float, beta: float, schur=None):
+    """The stabilised first-order ODE ``y' = (v, a)`` for ``y = (q, v)``.
+
+    ``schur`` solves with ``G M^{-1} G^T`` (:meth:`Mechanics.schur`; default dense).
+    """
     n = mech.n
 
     def field(t, y, args):
         q, v = y[:n], y[n:]
         stab = 2.0 * alpha * mech.vel_residual(q, v, t) + beta * beta * mech.g(q, t)
-        a, _ = mech.accelerations(t, q, v, stab=stab)
+        a, _ = mech.accelerations(t, q, v, stab=stab, schur=schur)
         return jnp.concatenate([v, a])
 
     return field
@@ -173,14 +176,14 @@ class EmbeddedControl(NamedTuple):
         return keep, t_new, t_next, cstate
 
 
-def _term(mech: Mechanics, params) -> diffrax.ODETerm:
-    return diffrax.ODETerm(baumgarte_field(mech, params["alpha"], params["beta"]))
+def _term(mech: Mechanics, schur, params) -> diffrax.ODETerm:
+    return diffrax.ODETerm(baumgarte_field(mech, params["alpha"], params["beta"], schur))
 
 
-@partial(jax.jit, static_argnames=("mech", "solver", "control"))
-def initial_state(y0, params, *, mech, solver, control) -> LoopState:
+@partial(jax.jit, static_argnames=("mech", "schur", "solver", "control"))
+def initial_state(y0, params, *, mech, schur, solver, control) -> LoopState:
     """The loop state at ``t0``: first attempt's end, solver and controller states."""
-    term = _term(mech, params)
+    term = _term(mech, schur, params)
     t_next, cstate = control.init(term, solver, y0, params)
     t0 = jnp.asarray(control.t0, dtype=jnp.float64)
     sstate = solver.init(term, t0, t_next, y0, None)
@@ -189,8 +192,8 @@ def initial_state(y0, params, *, mech, solver, control) -> LoopState:
                      zero, jnp.zeros((), jnp.int32))
 
 
-@partial(jax.jit, static_argnames=("mech", "solver", "control"))
-def run_chunk(state: LoopState, params, *, mech, solver, control):
+@partial(jax.jit, static_argnames=("mech", "schur", "solver", "control"))
+def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
     """Make step attempts until a batch of accepted steps is full, or the run ends.
 
     Returns ``(state, t, y, k)``: the accepted steps are ``t[:k]``, ``y[:k]``. The run ends
@@ -199,7 +202,7 @@ def run_chunk(state: LoopState, params, *, mech, solver, control):
     option is in ``params``, so one compilation serves every run of the same system,
     solver and horizon.
     """
-    term = _term(mech, params)
+    term = _term(mech, schur, params)
     error_order = solver.error_order(term)
     rows, size = batch_length(mech.n), 2 * mech.n
     t_end, max_steps = control.t_end, params["max_steps"]
@@ -241,12 +244,14 @@ def run_chunk(state: LoopState, params, *, mech, solver, control):
 
 
 def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: dict,
-          max_steps: int, sampling: str):
+          max_steps: int, sampling: str, linear_solver: str = "auto"):
     """Compile the loop and return ``solve()`` (runs chunks until done, then reports)."""
     n = mech.n
     params = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in params.items()}
     params["max_steps"] = jnp.asarray(max_steps, dtype=jnp.int64)
-    static = dict(mech=mech, solver=solver, control=control)
+    schur = mech.schur(linear_solver)
+    static = dict(mech=mech, schur=schur, solver=solver, control=control)
+    solver_record = dict(linear_solver=schur.name, pattern_nnz=schur.nnz)
     state0 = initial_state(jnp.asarray(y0), params, **static)
     chunk = run_chunk.lower(state0, params, **static).compile()
     tableau = solver.tableau
@@ -274,11 +279,12 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
         if code == 0 and t < grid.t_end:
             code = 4
         if code == 0:
-            return recorder.trajectory(OK, "", t, y[:n], y[n:], counts, sampling)
+            return recorder.trajectory(OK, "", t, y[:n], y[n:], counts, sampling,
+                                       **solver_record)
         what = CODES[code].format(max_steps=max_steps, t_end=grid.t_end)
         message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
         return recorder.trajectory(FAILED, message, t, y[:n], y[n:], counts, sampling,
-                                   fail_step=steps + 1, fail_time=t)
+                                   fail_step=steps + 1, fail_time=t, **solver_record)
 
     return solve
 
@@ -290,6 +296,7 @@ class BaumgarteBase(Integrator):
     solver: str = "rk4"
     alpha: float = 3.0
     beta: float = 3.0
+    linear_solver: str = "auto"
 
     @property
     def order(self) -> int:
@@ -332,7 +339,9 @@ class BaumgarteRK(BaumgarteBase):
     at 10). RK4's real stability interval (2.78) allows ``h < 0.9`` for ``beta = 3``.
 
     Counts: ``n_f_evals`` vector-field evaluations (the stages: 4 per step for rk4), each
-    one Cholesky solve of ``G M^{-1} G^T`` (``n_lin_solves``); no Newton iterations.
+    one factorisation and solve of ``G M^{-1} G^T`` (``n_lin_solves``; dense Cholesky, or
+    the structured solver chosen by ``linear_solver``, :mod:`problems.structure`); no
+    Newton iterations.
     Measured at every step.
 
     Parameters
@@ -343,6 +352,8 @@ class BaumgarteRK(BaumgarteBase):
         Key of :data:`SOLVERS` (the embedded error estimate, if any, is unused).
     alpha, beta : float
         Baumgarte damping and stiffness (1/s).
+    linear_solver : {"auto", "dense", "banded", "superlu"}
+        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
     """
 
     h: float = 0.01
@@ -354,7 +365,7 @@ class BaumgarteRK(BaumgarteBase):
         y0 = np.concatenate([case.q0, case.v0])
         params = {"alpha": self.alpha, "beta": self.beta, "n_steps": n_steps}
         return drive(case.mech, grid, y0, SOLVERS[self.solver](), control, params, n_steps,
-                     "every step")
+                     "every step", self.linear_solver)
 
 
 @dataclass(frozen=True)
@@ -398,6 +409,8 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
         Largest step; ``inf`` for none.
     max_steps : int
         Accepted steps allowed over the run; reaching it fails the run.
+    linear_solver : {"auto", "dense", "banded", "superlu"}
+        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
     """
 
     adaptive: ClassVar[bool] = True
@@ -436,4 +449,4 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
             "factormin", "factormax", "dt0", "dtmax")}
         y0 = np.concatenate([case.q0, case.v0])
         return drive(case.mech, grid, y0, SOLVERS[self.solver](), control, params,
-                     self.max_steps, "every internal step (accepted steps)")
+                     self.max_steps, "every internal step (accepted steps)", self.linear_solver)

@@ -2,7 +2,10 @@
 
 The problem's JAX functions give the residual ``F(t, y, y')`` and its iteration matrix
 ``dF/dy + cj dF/dy'`` (forward-mode autodiff, no finite differences); both are compiled once
-per case in ``prepare`` and handed to IDA through scikit-sundae. IDA runs in one-step mode
+per case in ``prepare`` and handed to IDA through scikit-sundae. Large systems get the
+iteration matrix as a sparse matrix, its pattern traced from the residual and its values
+from compressed autodiff (:class:`problems.structure.SparseJacobian`), factorised by
+SUNDIALS' sparse direct solver (SuperLU_MT, with its own fill-reducing column ordering). IDA runs in one-step mode
 so that every internal step is measured; the drift bookkeeping is
 :class:`integrators.record.Recorder`'s.
 """
@@ -13,6 +16,7 @@ import contextlib
 import io
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from functools import partial
 from typing import Callable, ClassVar, NamedTuple
@@ -20,12 +24,14 @@ from typing import Callable, ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 from sksundae.ida import IDA as SundialsIDA
 
 from integrators.base import FAILED, OK, Grid, Integrator
 from integrators.record import Recorder
 from problems.case import Case
 from problems.mechanics import Mechanics
+from problems.structure import DENSE_MAX, SparseJacobian
 
 Residual = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -46,10 +52,9 @@ def ggl_residual(mech: Mechanics) -> Residual:
 
     def F(t, y, yp):
         q, v, lam, mu = y[:n], y[n:2 * n], y[2 * n:2 * n + m], y[2 * n + m:]
-        G = mech.G(q, t)
         return jnp.concatenate([
-            yp[:n] - v + G.T @ mu,
-            mech.mass(q) @ yp[n:2 * n] - mech.force(t, q, v) + G.T @ lam,
+            yp[:n] - v + mech.GT(q, t, mu),
+            mech.mass_times(q, yp[n:2 * n]) - mech.force(t, q, v) + mech.GT(q, t, lam),
             mech.g(q, t),
             mech.vel_residual(q, v, t),
         ])
@@ -73,11 +78,10 @@ def index1_residual(mech: Mechanics) -> Residual:
 
     def F(t, y, yp):
         q, v, lam = y[:n], y[n:2 * n], y[2 * n:2 * n + m]
-        G = mech.G(q, t)
         return jnp.concatenate([
             yp[:n] - v,
-            mech.mass(q) @ yp[n:2 * n] - mech.force(t, q, v) + G.T @ lam,
-            G @ yp[n:2 * n] + mech.gamma(q, v, t),
+            mech.mass_times(q, yp[n:2 * n]) - mech.force(t, q, v) + mech.GT(q, t, lam),
+            mech.G_times(q, t, yp[n:2 * n]) + mech.gamma(q, v, t),
         ])
 
     return F
@@ -99,8 +103,9 @@ FORMULATIONS: dict[str, Formulation] = {
 #: ``multiplier_atol`` that keeps the multipliers out of the error test.
 EXCLUDED = 1e30
 
-#: IDA's direct linear solvers that take our dense Jacobian.
-LINEAR_SOLVERS = ("dense", "lapackdense")
+#: IDA's direct linear solvers: ``auto`` picks ``sparse`` for more than
+#: :data:`problems.structure.DENSE_MAX` constraints and ``dense`` otherwise.
+LINEAR_SOLVERS = ("auto", "dense", "lapackdense", "sparse")
 
 #: ``jacobian`` option -> whether our autodiff iteration matrix is handed to IDA (else IDA
 #: forms it by difference quotients of the residual).
@@ -121,17 +126,36 @@ def iteration_matrix(t, y, yp, cj, *, mech: Mechanics, formulation: str):
     return jax.jacfwd(lambda z: F(t, z, yp + cj * (z - y)))(y)
 
 
-@partial(jax.jit, static_argnames=("mech", "blocks"))
-def _consistent(t, q, v, *, mech: Mechanics, blocks: int):
-    a, lam = mech.accelerations(t, q, v)
-    lam_dot = jax.jvp(lambda s, x, u: mech.accelerations(s, x, u)[1],
+def sparse_iteration_matrix(mech: Mechanics, formulation: str, y0, yp0):
+    """The iteration matrix's CSC pattern and a compiled ``(t, y, y', cj) -> CSC data``."""
+    F = FORMULATIONS[formulation].residual(mech)
+    t0 = jnp.asarray(0.0)
+    jac = SparseJacobian(lambda z: F(t0, z, jnp.asarray(yp0) + (z - jnp.asarray(y0))),
+                         jnp.asarray(y0))
+    size = len(y0)
+    pattern = sp.csc_matrix((np.arange(1, jac.nnz + 1, dtype=np.float64), (jac.rows, jac.cols)),
+                            shape=(size, size))
+    order = jnp.asarray(pattern.data.astype(np.int64) - 1)
+
+    @jax.jit
+    def data(t, y, yp, cj):
+        values = jac.values(y, lambda z: F(t, z, yp + cj * (z - y)))
+        return jnp.take(values, order)
+
+    return pattern, data, jac.nnz
+
+
+@partial(jax.jit, static_argnames=("mech", "blocks", "schur"))
+def _consistent(t, q, v, *, mech: Mechanics, blocks: int, schur):
+    a, lam = mech.accelerations(t, q, v, schur=schur)
+    lam_dot = jax.jvp(lambda s, x, u: mech.accelerations(s, x, u, schur=schur)[1],
                       (t, q, v), (jnp.ones_like(t), v, a))[1]
     zeros = jnp.zeros((blocks - 1) * mech.m)
     return jnp.concatenate([q, v, lam, zeros]), jnp.concatenate([v, a, lam_dot, zeros])
 
 
 def consistent_values(mech: Mechanics, blocks: int, t0: float, q0: np.ndarray,
-                      v0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      v0: np.ndarray, schur=None) -> tuple[np.ndarray, np.ndarray]:
     """``(y0, y0')`` of either formulation from a consistent ``(q0, v0)``.
 
     Accelerations and multipliers come from the index-1 system
@@ -140,7 +164,8 @@ def consistent_values(mech: Mechanics, blocks: int, t0: float, q0: np.ndarray,
     component; ``mu = mu' = 0``.
     """
     y0, yp0 = _consistent(jnp.asarray(t0, dtype=jnp.float64), jnp.asarray(q0),
-                          jnp.asarray(v0), mech=mech, blocks=blocks)
+                          jnp.asarray(v0), mech=mech, blocks=blocks,
+                          schur=mech.schur("dense") if schur is None else schur)
     return np.asarray(y0, dtype=np.float64), np.asarray(yp0, dtype=np.float64)
 
 
@@ -175,7 +200,7 @@ class Callbacks:
 
     def jacobian(self, t, y, yp, res, cj, JJ):
         start = time.perf_counter()
-        JJ[:, :] = self._J(t, y, yp, cj)
+        JJ[...] = self._J(t, y, yp, cj)
         self.jacobian_s += time.perf_counter() - start
 
 
@@ -257,8 +282,10 @@ class IDA(Integrator):
         Initial step; 0 lets IDA choose it from ``||y0'||``.
     min_step, max_step : float
         Step size bounds; 0 means none.
-    linsolver : {"dense", "lapackdense"}
-        IDA's dense direct linear solver (SUNDIALS' own or LAPACK's).
+    linsolver : {"auto", "dense", "lapackdense", "sparse"}
+        IDA's direct linear solver: dense (SUNDIALS' own or LAPACK's) or sparse
+        (SuperLU_MT, one thread, on the compressed autodiff Jacobian); ``auto`` takes
+        ``sparse`` above :data:`problems.structure.DENSE_MAX` constraints.
     jacobian : {"autodiff", "difference-quotient"}
         The iteration matrix: ours (forward-mode autodiff, the default) or IDA's
         difference quotients of the residual (for comparison).
@@ -277,7 +304,7 @@ class IDA(Integrator):
     first_step: float = 0.0
     min_step: float = 0.0
     max_step: float = 0.0
-    linsolver: str = "dense"
+    linsolver: str = "auto"
     jacobian: str = "autodiff"
 
     @property
@@ -293,6 +320,8 @@ class IDA(Integrator):
         if self.jacobian not in JACOBIANS:
             raise ValueError(f"{name}: jacobian = {self.jacobian!r} is not one of "
                              f"{', '.join(JACOBIANS)}")
+        if self.jacobian != "autodiff" and self.linsolver == "sparse":
+            raise ValueError(f"{name}: linsolver = 'sparse' needs jacobian = 'autodiff'")
         if self.linsolver not in LINEAR_SOLVERS:
             raise ValueError(f"{name}: linsolver = {self.linsolver!r} is not one of "
                              f"{', '.join(LINEAR_SOLVERS)}")
@@ -313,34 +342,54 @@ class IDA(Integrator):
         n, m = mech.n, mech.m
         form = FORMULATIONS[self.formulation]
         t0, t_end = float(grid.t0), float(grid.t_end)
-        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0)
-        # Redundant constraints make the iteration matrix singular; SUNDIALS' dense LU does
-        # not notice, and the run would return meaningless states as a success.
-        rank = int(np.linalg.matrix_rank(np.asarray(mech.G(jnp.asarray(case.q0),
-                                                           jnp.asarray(t0)))))
-        redundant = (f"G(q0) has rank {rank} < m = {m} (redundant constraints): the "
-                     "iteration matrix is singular, which IDA's dense LU cannot solve"
-                     if rank < m else "")
+        linsolver = self.linsolver
+        if linsolver == "auto":
+            linsolver = "sparse" if m > DENSE_MAX and self.jacobian == "autodiff" else "dense"
+        schur = mech.schur("dense" if linsolver != "sparse" else "auto")
+        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0, schur)
+        redundant = ""
+        if linsolver != "sparse":
+            # Redundant constraints make the iteration matrix singular; SUNDIALS' dense LU
+            # does not notice, and the run would return meaningless states as a success.
+            # (SuperLU_MT does: a singular matrix fails the run with SUNDIALS' message.)
+            rank = int(np.linalg.matrix_rank(np.asarray(mech.G(jnp.asarray(case.q0),
+                                                               jnp.asarray(t0)))))
+            redundant = (f"G(q0) has rank {rank} < m = {m} (redundant constraints): the "
+                         "iteration matrix is singular, which IDA's dense LU cannot solve"
+                         if rank < m else "")
         static = dict(mech=mech, formulation=self.formulation)
         residual = dae_residual.lower(t0, y0, yp0, **static).compile()
-        matrix = iteration_matrix.lower(t0, y0, yp0, 1.0, **static).compile()
+        sparse = {}
+        if linsolver == "sparse":
+            pattern, matrix, nnz = sparse_iteration_matrix(mech, self.formulation, y0, yp0)
+            sparse = dict(sparsity=pattern, nthreads=1)
+        else:
+            matrix = iteration_matrix.lower(t0, y0, yp0, 1.0, **static).compile()
         r0 = np.asarray(residual(t0, y0, yp0))
         J0 = np.asarray(matrix(t0, y0, yp0, 1.0))
         assert r0.dtype == np.float64 and J0.dtype == np.float64, "IDA must run in float64"
         initial_residual = float(np.max(np.abs(r0)))
         n_mult = form.multiplier_blocks * m
         callbacks = Callbacks(residual, matrix)
-        ida = SundialsIDA(
-            callbacks.residual,
-            jacfn=callbacks.jacobian if JACOBIANS[self.jacobian] else None,
-            rtol=self.rtol,
-            atol=np.concatenate([np.full(2 * n, self.atol),
-                                 np.full(n_mult, self.multiplier_atol)]),
-            algebraic_idx=list(range(2 * n, 2 * n + n_mult)),
-            calc_initcond=None, first_step=self.first_step, min_step=self.min_step,
-            max_step=self.max_step, linsolver=self.linsolver, max_order=self.max_order,
-            max_num_steps=self.max_steps, max_nonlin_iters=self.max_nonlin_iters,
-            max_conv_fails=self.max_conv_fails)
+        with warnings.catch_warnings():
+            # The binding warns that the pattern is not used for difference quotients:
+            # ours is the Jacobian's own pattern, filled by jacfn.
+            warnings.filterwarnings("ignore", "Custom sparse Jacobian", UserWarning)
+            ida = SundialsIDA(
+                callbacks.residual,
+                jacfn=callbacks.jacobian if JACOBIANS[self.jacobian] else None,
+                rtol=self.rtol,
+                atol=np.concatenate([np.full(2 * n, self.atol),
+                                     np.full(n_mult, self.multiplier_atol)]),
+                algebraic_idx=list(range(2 * n, 2 * n + n_mult)),
+                calc_initcond=None, first_step=self.first_step, min_step=self.min_step,
+                max_step=self.max_step, linsolver=linsolver, max_order=self.max_order,
+                max_num_steps=self.max_steps, max_nonlin_iters=self.max_nonlin_iters,
+                max_conv_fails=self.max_conv_fails, **sparse)
+        # The run records IDA's linear solver and the size of G's pattern (the iteration
+        # matrix's is larger: it holds G, G^T and the derivatives of G^T lambda).
+        solver_record = dict(linear_solver=linsolver,
+                             pattern_nnz=mech.schur("auto").nnz if sparse else None)
         recorder = Recorder(mech, grid)
         sampling = "every internal step (IDA one-step mode)"
 
@@ -348,7 +397,8 @@ class IDA(Integrator):
             if redundant:
                 recorder.start(t0, y0[:n], y0[n:2 * n])
                 return recorder.trajectory(FAILED, redundant, t0, y0[:n], y0[n:2 * n],
-                                           {"n_steps": 0}, sampling, fail_step=1, fail_time=t0)
+                                           {"n_steps": 0}, sampling, fail_step=1, fail_time=t0,
+                                           **solver_record)
             callbacks.reset()
             start = ida.init_step(t0, y0, yp0)
             if not start.success:
@@ -385,9 +435,9 @@ class IDA(Integrator):
                      "initial_residual": initial_residual}
             if failure is None:
                 return recorder.trajectory(OK, "", t, y[:n], y[n:2 * n], counts, sampling,
-                                           extra=extra)
+                                           extra=extra, **solver_record)
             return recorder.trajectory(FAILED, failure, t, y[:n], y[n:2 * n], counts,
                                        sampling, fail_step=steps + 1, fail_time=t,
-                                       extra=extra)
+                                       extra=extra, **solver_record)
 
         return solve

@@ -61,7 +61,10 @@ from integrators.record import measurer
 from problems.mechanics import Mechanics
 
 #: Failure codes a step can return (0 is success).
-CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite"}
+CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite",
+         3: ("G M^-1 G^T is numerically singular (redundant constraints or a singular "
+             "configuration), which the structured linear solver cannot factorise; "
+             "linear_solver=dense handles it")}
 
 #: XLA:CPU option: emit any run of operations (while loops included) whose cost model
 #: reads and writes at most this many bytes per pass as one native kernel. The default,
@@ -198,7 +201,8 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
 
 def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
           observe: Callable[[Any], tuple[jax.Array, jax.Array]],
-          key: tuple | None = None) -> Callable[[], Trajectory]:
+          key: tuple | None = None, linear_solver: str = "dense",
+          pattern_nnz: int | None = None) -> Callable[[], Trajectory]:
     """Compile the time loop (or reuse it) and return ``solve()``.
 
     Parameters
@@ -215,6 +219,8 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         What ``step`` and ``observe`` depend on besides ``mech`` and ``h`` (the method and
         its other options). With a key, the compiled loop is reused by later calls with
         the same key, ``mech``, ``t0`` and grid sizes; without one it is compiled afresh.
+    linear_solver, pattern_nnz
+        What the step's linear algebra is, recorded in the trajectory.
 
     Returns
     -------
@@ -258,12 +264,13 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         samples = {"t": t0 + np.arange(n_samp) * plan.stride * plan.h,
                    "q": samp_q[:n_samp], "v": samp_v[:n_samp]}
         counts = {"n_steps": k, **{key: int(val) for key, val in zip(WORK, counts)}}
+        solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
         if code == 0:
-            return Trajectory(OK, "", t_final, q, v, windows, samples, counts)
+            return Trajectory(OK, "", t_final, q, v, windows, samples, counts, **solver)
         message = (f"{CODES[code]} at step {k + 1} (t = {t_final:.6g} -> "
                    f"{t_final + plan.h:.6g}); last Newton residual {float(resid):.3e}")
         return Trajectory(FAILED, message, t_final, q, v, windows, samples, counts,
-                          fail_step=k + 1, fail_time=t_final)
+                          fail_step=k + 1, fail_time=t_final, **solver)
 
     solve.compiled = compiled
     return solve

@@ -9,8 +9,9 @@ import jax.numpy as jnp
 
 from integrators.base import Grid, Integrator
 from integrators.loop import march
-from integrators.newton import newton, solve
+from integrators.newton import newton
 from problems.case import Case
+from problems.structure import solve
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,14 @@ class Rattle(Integrator):
     otherwise the unknown is ``(p_{1/2}, q_1, lambda)``. The velocity projection is linear
     in ``mu`` (one m x m solve) because ``H_p`` is linear in ``p``.
 
+    Large sparse systems (``linear_solver``, :mod:`problems.structure`) use simplified
+    Newton instead: the Jacobian is replaced by ``-h^2/2 S_0`` with the Schur complement
+    ``S_0 = G(q_0) M^{-1} G(q_0)^T``, whose factor is the previous step's velocity
+    projection matrix, so each step factorises ``S`` once (at ``q_1``, for the velocity
+    projection) and ``G`` is never formed. With forces the unknown is again
+    ``(p_{1/2}, q_1, lambda)``, and the same elimination reduces its correction to one solve
+    with ``S_0``.
+
     Parameters
     ----------
     h : float
@@ -46,11 +55,14 @@ class Rattle(Integrator):
         round-off (see :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
+    linear_solver : {"auto", "dense", "banded", "superlu"}
+        How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
     """
 
     h: float = 0.01
     newton_tol: float = 1e-16
     newton_max_iter: int = 20
+    linear_solver: str = "auto"
 
     @property
     def order(self) -> int:
@@ -86,32 +98,81 @@ class Rattle(Integrator):
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
             return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
 
-        position = position_separable if mech.separable else position_general
+        def position_separable_structured(q0, p0, F0, S0, lam, t, h):
+            def half(lam):
+                p_half = p0 + 0.5 * h * (F0 - mech.GT(q0, t, lam))
+                return p_half, q0 + h * mech.H_p(q0, p_half)
+
+            def linear(lam, r):
+                # J = -h^2/2 G(q1) M^-1 G(q0)^T, approximated at q1 = q0; |J||lam| is
+                # bounded by h^2/2 ||S0|| |lam|.
+                return schur.solve(S0, r) * (2.0 / (h * h)), 0.5 * h * h * S0.norm * jnp.max(jnp.abs(lam))
+
+            sol = newton(lambda lam: mech.g(half(lam)[1], t + h), lam,
+                         self.newton_tol, self.newton_max_iter, linear)
+            return (*half(sol.z), sol, 0)
+
+        def position_structured(q0, p0, F0, S0, lam, t, h):
+            def residual(z):
+                p_half, q1, lam = z[:n], z[n:2 * n], z[2 * n:]
+                return jnp.concatenate([
+                    p_half - p0 - 0.5 * h * (F(t, q0, p_half) - mech.GT(q0, t, lam)),
+                    q1 - q0 - 0.5 * h * (mech.H_p(q0, p_half) + mech.H_p(q1, p_half)),
+                    mech.g(q1, t + h),
+                ])
+
+            def linear(z, r):
+                # Frozen at q0 without the force Jacobian: dp = -r1 - h/2 G0^T dlam,
+                # dq = -r2 + h M^-1 dp and G0 dq = -r3 give
+                # h^2/2 S0 dlam = r3 - G0 (r2 + h M^-1 r1).
+                r1, r2, r3 = r[:n], r[n:2 * n], r[2 * n:]
+                rhs = r3 - mech.G_times(q0, t, r2 + h * mech.solve_mass(q0, r1))
+                dlam = schur.solve(S0, rhs) * (2.0 / (h * h))
+                dp = -r1 - 0.5 * h * mech.GT(q0, t, dlam)
+                dq = -r2 + h * mech.solve_mass(q0, dp)
+                return jnp.concatenate([dp, dq, dlam]), jnp.max(jnp.abs(z))
+
+            z0 = jnp.concatenate([p0, q0 + h * mech.H_p(q0, p0), lam])
+            sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
+            return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
+
+        schur = mech.schur(self.linear_solver)
+        if schur.name == "dense":
+            position = position_separable if mech.separable else position_general
+        else:
+            position = position_separable_structured if mech.separable else position_structured
 
         def step(carry, t, h):
-            q0, p0, F0, G0, lam = carry
-            p_half, q1, sol, extra_f = position(q0, p0, F0, G0, lam, t, h)
+            q0, p0, F0, S0, lam = carry
+            p_half, q1, sol, extra_f = position(q0, p0, F0, S0, lam, t, h)
             t1 = t + h
-            G1 = mech.G(q1, t1)
             F1 = F(t1, q1, p_half)
             base = p_half + 0.5 * h * F1
-            MinvG1T = mech.solve_mass(q1, G1.T)
-            mu = solve(0.5 * h * G1 @ MinvG1T, G1 @ mech.H_p(q1, base) + mech.g_t(q1, t1))
-            p1 = base - 0.5 * h * G1.T @ mu
+            rhs = mech.vel_residual(q1, mech.H_p(q1, base), t1)
+            if schur.name == "dense":
+                G1 = mech.G(q1, t1)
+                mu = solve(0.5 * h * G1 @ mech.solve_mass(q1, G1.T), rhs)
+                p1, S1, ok = base - 0.5 * h * G1.T @ mu, G1, True
+            else:
+                S1 = schur.factor(q1, t1)
+                mu = schur.solve(S1, rhs) * (2.0 / h)
+                p1, ok = base - 0.5 * h * mech.GT(q1, t1, mu), S1.ok
             it = sol.iterations
-            # G1 is the next step's G0 (first same as last), and so is F1 with a separable H;
-            # the general projection evaluates F once per residual instead.
+            # G1 (or the factor of S1) is the next step's (first same as last), and so is
+            # F1 with a separable H; the general projection evaluates F once per residual.
             counts = {"n_f_evals": 1 + extra_f * (it + 1), "n_jac_evals": it + 1,
                       "n_newton": it, "n_lin_solves": it + 1}
-            return (q1, p1, F1, G1, sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
+            code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
+            return (q1, p1, F1, S1, sol.z), code, sol.residual, counts
 
         # Compiled once; run eagerly, each autodiff operation would compile on its own.
         @jax.jit
         def start(q0, v0, t0):
             p0 = mech.momentum(q0, v0)
-            return q0, p0, F(t0, q0, p0), mech.G(q0, t0), jnp.zeros(m)
+            first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
+            return q0, p0, F(t0, q0, p0), first, jnp.zeros(m)
 
         carry0 = start(jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0))
         return march(mech, grid, self.h, carry0, step,
                      lambda carry: (carry[0], mech.H_p(carry[0], carry[1])),
-                     key=replace(self, h=None))
+                     key=replace(self, h=None), linear_solver=schur.name, pattern_nnz=schur.nnz)

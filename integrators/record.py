@@ -172,11 +172,12 @@ class Recorder:
     def trajectory(self, status: str, message: str, t_final: float, q_final: np.ndarray,
                    v_final: np.ndarray, counts: dict[str, int], sampling: str,
                    fail_step: int | None = None, fail_time: float | None = None,
-                   extra: dict[str, float] | None = None) -> Trajectory:
+                   extra: dict[str, float] | None = None, linear_solver: str = "dense",
+                   pattern_nnz: int | None = None) -> Trajectory:
         """The :class:`Trajectory` of the recorded run."""
         q_final = np.asarray(q_final)
         assert q_final.dtype == np.float64, "the backend must hand over float64 states"
         fail_time = None if fail_time is None or math.isnan(fail_time) else float(fail_time)
         return Trajectory(status, message, float(t_final), q_final, np.asarray(v_final),
                           self.windows(), self.samples(), dict(counts), sampling,
-                          fail_step, fail_time, dict(extra or {}))
+                          fail_step, fail_time, dict(extra or {}), linear_solver, pattern_nnz)

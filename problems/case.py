@@ -104,24 +104,34 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
             tol: float = 1e-15, max_iter: int = 50) -> tuple[np.ndarray, np.ndarray]:
     """Mass-orthogonal projection onto ``g = 0`` and then ``G v + g_t = 0``.
 
-    Positions by the Gauss-Newton iteration ``q <- q - M^{-1} G^T (G M^{-1} G^T)^+ g``;
-    velocities by the one linear projection with the same metric. Least squares (``lstsq``)
-    keeps it valid for redundant constraints.
+    Positions by the Gauss-Newton iteration ``q <- q - M^{-1} G^T (G M^{-1} G^T)^{-1} g``;
+    velocities by the one linear projection with the same metric. The solves with
+    ``G M^{-1} G^T`` are the integrators' (:meth:`Mechanics.schur`, chosen by structure),
+    under their one policy for redundant constraints (:mod:`problems.structure`).
     """
+    schur = mech.schur("auto")
+    step = _projection_step(mech, schur)
     t = jnp.asarray(t, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
     for _ in range(max_iter):
         r = mech.g(q, t)
         if float(jnp.max(jnp.abs(r), initial=0.0)) <= tol:
             break
-        G = mech.G(q, t)
-        MinvGT = mech.solve_mass(q, G.T)
-        q = q - MinvGT @ jnp.linalg.lstsq(G @ MinvGT, r)[0]
-    G = mech.G(q, t)
-    MinvGT = mech.solve_mass(q, G.T)
+        q = q - step(q, t, r)
     v = jnp.asarray(v, dtype=jnp.float64)
-    v = v - MinvGT @ jnp.linalg.lstsq(G @ MinvGT, mech.vel_residual(q, v, t))[0]
+    v = v - step(q, t, mech.vel_residual(q, v, t))
     return np.asarray(q), np.asarray(v)
+
+
+def _projection_step(mech: Mechanics, schur):
+    """Compiled ``(q, t, r) -> M^{-1} G^T (G M^{-1} G^T)^{-1} r``."""
+
+    @jax.jit
+    def step(q, t, r):
+        lam = schur.solve(schur.factor(q, t), r)
+        return mech.solve_mass(q, mech.GT(q, t, lam))
+
+    return step
 
 
 def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],

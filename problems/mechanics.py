@@ -15,14 +15,21 @@ acceleration-level term ``gamma`` with ``G a + gamma = 0``, the quadratic-veloci
 ``c(q, v)`` of a configuration-dependent mass, the momentum ``p = M v`` and the Hamiltonian
 ``H(q, p) = p^T M(q)^{-1} p / 2 + U(q)`` with its gradients. No integrator differentiates
 anything itself.
+
+The structure of the constraints is derived here too: the sparsity pattern of ``G`` by
+tracing ``g`` (:attr:`Mechanics.G_coloring`) and its values by compressed autodiff
+(:meth:`Mechanics.G_values`), which :mod:`problems.structure` turns into linear algebra
+whose cost grows with the number of entries of ``G`` rather than with ``m n``.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable, Mapping
 
+import asdex
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -87,24 +94,43 @@ class Mechanics:
         self.system = system
         self.n, self.m = system.n, system.m
         self.constant_mass = not callable(system.mass)
+        #: The constant diagonal of ``M`` when it is one (``None`` otherwise): such a mass is
+        #: never formed as a matrix, so that its cost and memory stay ``O(n)``.
+        self.mass_diagonal = None
         if self.constant_mass:
             mass = np.asarray(system.mass, dtype=np.float64)
-            matrix = np.diag(mass) if mass.ndim == 1 else mass
-            if matrix.shape != (self.n, self.n):
-                raise ValueError(f"mass has shape {matrix.shape}, expected ({self.n}, {self.n})")
-            self._M = jnp.asarray(matrix)
-            self._Minv = jnp.asarray(np.linalg.inv(matrix))
+            if mass.ndim == 1 and mass.shape != (self.n,):
+                raise ValueError(f"mass has shape {mass.shape}, expected ({self.n},)")
+            if mass.ndim == 2 and mass.shape != (self.n, self.n):
+                raise ValueError(f"mass has shape {mass.shape}, expected ({self.n}, {self.n})")
+            if mass.ndim == 1 or not np.any(mass - np.diag(np.diag(mass))):
+                self.mass_diagonal = mass if mass.ndim == 1 else np.diag(mass).copy()
+            else:
+                self._M = jnp.asarray(mass)
+                self._Minv = jnp.asarray(np.linalg.inv(mass))
         # Energy is conserved only for a scleronomic system without applied forces.
         self.has_energy = system.forces is None and not system.rheonomic
         self.separable = self.constant_mass and system.forces is None
 
     # --- mass, momentum, Hamiltonian -------------------------------------------------
     def mass(self, q: Array) -> Array:
-        """Mass matrix ``M(q)``."""
+        """Mass matrix ``M(q)`` (dense; :meth:`mass_times` avoids forming it)."""
+        if self.mass_diagonal is not None:
+            return jnp.diag(jnp.asarray(self.mass_diagonal))
         return self._M if self.constant_mass else self.system.mass(q)
+
+    def mass_times(self, q: Array, x: Array) -> Array:
+        """``M(q) x`` (x may be a vector or a matrix of columns)."""
+        if self.mass_diagonal is not None:
+            d = jnp.asarray(self.mass_diagonal)
+            return (d[:, None] if x.ndim == 2 else d) * x
+        return self.mass(q) @ x
 
     def solve_mass(self, q: Array, b: Array) -> Array:
         """``M(q)^{-1} b`` (b may be a vector or a matrix of columns)."""
+        if self.mass_diagonal is not None:
+            d = jnp.asarray(self.mass_diagonal)
+            return b / (d[:, None] if b.ndim == 2 else d)
         if self.constant_mass:
             return self._Minv @ b
         # LU, not Cholesky: under jacfwd the Cholesky solve's tangents become batched
@@ -117,7 +143,7 @@ class Mechanics:
 
     def momentum(self, q: Array, v: Array) -> Array:
         """Conjugate momentum ``p = M(q) v``."""
-        return self.mass(q) @ v
+        return self.mass_times(q, v)
 
     def velocity(self, q: Array, p: Array) -> Array:
         """Velocity ``v = H_p(q, p) = M(q)^{-1} p``."""
@@ -129,7 +155,7 @@ class Mechanics:
 
     def energy(self, q: Array, v: Array) -> Array:
         """Total energy ``v^T M(q) v / 2 + U(q)`` in velocity form."""
-        return 0.5 * v @ self.mass(q) @ v + self.potential(q)
+        return 0.5 * v @ self.mass_times(q, v) + self.potential(q)
 
     def H_q(self, q: Array, p: Array) -> Array:
         """``dH/dq``, including the derivative of ``M(q)^{-1}`` for a varying mass."""
@@ -173,6 +199,43 @@ class Mechanics:
         """Constraint Jacobian ``dg/dq`` (m x n)."""
         return jax.jacfwd(self.system.constraints, argnums=0)(q, t)
 
+    def G_times(self, q: Array, t: Array, v: Array) -> Array:
+        """``G(q, t) v`` as one forward-mode derivative of ``g`` along ``v`` (``G`` never formed)."""
+        return jax.jvp(lambda x: self.g(x, t), (q,), (v,))[1]
+
+    def GT(self, q: Array, t: Array, lam: Array) -> Array:
+        """``G(q, t)^T lam`` as one reverse-mode derivative of ``g`` (``G`` is never formed)."""
+        return jax.vjp(lambda x: self.g(x, t), q)[1](lam)[0]
+
+    @cached_property
+    def G_coloring(self) -> asdex.ColoredPattern:
+        """The sparsity pattern of ``G`` and a colouring of it, found once.
+
+        The pattern is traced from ``g`` itself (which outputs depend on which inputs, at
+        ``q = 0``, ``t = 0``: structurally, not numerically, so no entry that merely happens
+        to vanish there is lost); rows (or columns) that share no column (row) get one
+        colour, and one reverse (forward) derivative per colour gives all of ``G``.
+        """
+        pattern = asdex.jacobian_sparsity(lambda q: self.g(q, jnp.asarray(0.0)), jnp.zeros(self.n))
+        with warnings.catch_warnings():
+            # A tiny G (one pendulum constraint) needs as many colours as columns: fine.
+            warnings.simplefilter("ignore", asdex.DenseColoringWarning)
+            return asdex.jacobian_coloring_from_sparsity(pattern)
+
+    def G_values(self, q: Array, t: Array) -> Array:
+        """The entries of ``G(q, t)`` in the order of :attr:`G_coloring` (compressed autodiff)."""
+        coloring = self.G_coloring
+        compressed = asdex.compressed_jacobian_from_coloring(lambda x: self.g(x, t), coloring)(q)
+        return asdex.decompress_data(compressed, coloring)
+
+    def schur(self, kind: str = "auto"):
+        """The solver for ``G M^{-1} G^T`` (see :func:`problems.structure.schur`), built once."""
+        from problems.structure import schur
+        cache = self.__dict__.setdefault("_schur", {})
+        if kind not in cache:
+            cache[kind] = schur(self, kind)
+        return cache[kind]
+
     def g_t(self, q: Array, t: Array) -> Array:
         """Explicit time derivative ``dg/dt`` (zero for a scleronomic system)."""
         if not self.system.rheonomic:
@@ -181,7 +244,7 @@ class Mechanics:
 
     def vel_residual(self, q: Array, v: Array, t: Array) -> Array:
         """Velocity-level constraint ``G(q, t) v + g_t(q, t)``."""
-        return self.G(q, t) @ v + self.g_t(q, t)
+        return self.G_times(q, t, v) + self.g_t(q, t)
 
     def gamma(self, q: Array, v: Array, t: Array) -> Array:
         """Acceleration-level term: ``G a + gamma = 0`` is ``d^2 g / dt^2 = 0``.
@@ -191,50 +254,29 @@ class Mechanics:
         """
         return jax.jvp(lambda x, s: self.vel_residual(x, v, s), (q, t), (v, jnp.ones_like(t)))[1]
 
-    def accelerations(self, t: Array, q: Array, v: Array, stab: Array | None = None):
+    def accelerations(self, t: Array, q: Array, v: Array, stab: Array | None = None,
+                      schur=None):
         """Accelerations and multipliers from the index-1 system.
 
         Solves ``[M G^T; G 0] [a; lam] = [force; -gamma - stab]`` through the Schur
-        complement ``G M^{-1} G^T`` (m x m, Cholesky; least squares when redundant
-        constraints make it singular, see :meth:`schur_solve`). ``stab`` is an extra
-        acceleration-level right-hand side (Baumgarte terms); ``None`` means zero.
+        complement, ``G M^{-1} G^T lam = G M^{-1} force + gamma + stab``, then
+        ``a = M^{-1} (force - G^T lam)``. ``stab`` is an extra acceleration-level right-hand
+        side (Baumgarte terms); ``None`` means zero. ``schur`` is the solver of
+        :meth:`schur` to use (default: dense); redundant constraints are handled by its
+        policy (:mod:`problems.structure`).
 
         Returns
         -------
         a, lam : Array
+            Not finite where a structured solver found ``S`` numerically singular.
         """
-        F = self.force(t, q, v)
-        G = self.G(q, t)
-        MinvF = self.solve_mass(q, F)
-        MinvGT = self.solve_mass(q, G.T)
-        rhs = G @ MinvF + self.gamma(q, v, t)
+        schur = self.schur("dense") if schur is None else schur
+        MinvF = self.solve_mass(q, self.force(t, q, v))
+        rhs = self.G_times(q, t, MinvF) + self.gamma(q, v, t)
         if stab is not None:
             rhs = rhs + stab
-        lam = self.schur_solve(G @ MinvGT, rhs)
-        return MinvF - MinvGT @ lam, lam
-
-    @staticmethod
-    def schur_solve(S: Array, rhs: Array) -> Array:
-        """``S^{-1} rhs`` for ``S = G M^{-1} G^T`` by Cholesky, or by least squares if singular.
-
-        Redundant constraints (``G`` of rank below ``m``) make ``S`` positive semidefinite
-        only: its Cholesky factor then has a pivot at round-off level or breaks down (NaN).
-        ``S`` is first scaled symmetrically to unit diagonal (``D S D``, so that constraints
-        in different units are not taken for rank deficiency); when the smallest squared
-        pivot of its Cholesky factor is below ``1e-12`` times the largest (or not finite),
-        the minimum-norm least-squares solution (SVD, singular values below ``1e-12`` of the
-        largest dropped) of the scaled system is used instead: its multipliers give
-        ``G^T lam``, the unique constraint force. (``S`` is m x m, so the SVD is cheap.)
-        """
-        d = jnp.diag(S)
-        D = jnp.where(d > 0, 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0)), 1.0)
-        Ss = S * D[:, None] * D[None, :]
-        factor = jax.scipy.linalg.cho_factor(Ss, lower=True)
-        pivots = jnp.diag(factor[0]) ** 2
-        deficient = ~(jnp.min(pivots) > 1e-12 * jnp.max(pivots))
-        y = jax.lax.cond(deficient, lambda: jnp.linalg.lstsq(Ss, D * rhs, rcond=1e-12)[0],
-                         lambda: jax.scipy.linalg.cho_solve(factor, D * rhs))
-        return D * y
+        lam = schur.solve(schur.factor(q, t), rhs)
+        return MinvF - self.solve_mass(q, self.GT(q, t, lam)), lam
 
     def invariant_values(self, q: Array, v: Array) -> Array:
         """Declared invariants beyond energy, stacked (empty when none)."""

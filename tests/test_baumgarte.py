@@ -88,8 +88,8 @@ def test_vector_field_evaluations_are_counted_exactly(monkeypatch):
     calls = []
     field = baumgarte.baumgarte_field
 
-    def counted(mech, alpha, beta):
-        f = field(mech, alpha, beta)
+    def counted(mech, alpha, beta, schur=None):
+        f = field(mech, alpha, beta, schur)
 
         def g(t, y, args):
             jax.debug.callback(lambda: calls.append(1))

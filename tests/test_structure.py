@@ -1,0 +1,169 @@
+"""Linear algebra chosen by structure: patterns, solvers, and every family on both paths."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import problems
+from integrators.ida import FORMULATIONS, consistent_values
+from problems.mechanics import System
+from problems.structure import SparseJacobian
+from tests.helpers import solve
+
+STRUCTURED = ("banded", "superlu")
+
+
+def random_state(case, scale=1e-2, seed=0):
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(case.q0 + scale * rng.standard_normal(case.q0.shape))
+
+
+@pytest.mark.parametrize("name", problems.names())
+def test_pattern_of_G_holds_every_entry_of_the_dense_jacobian(name):
+    # The traced pattern must contain every nonzero of G at a generic point, and the
+    # compressed evaluation must reproduce G's values there: the values are the same
+    # forward/reverse derivatives in another grouping, so they agree to round-off.
+    case = problems.make(name)
+    mech = case.mech
+    q, t = random_state(case), jnp.asarray(0.3)
+    G = np.asarray(mech.G(q, t))
+    coloring = mech.G_coloring
+    rows, cols = np.asarray(coloring.sparsity.rows), np.asarray(coloring.sparsity.cols)
+    compressed = np.zeros_like(G)
+    compressed[rows, cols] = np.asarray(jax.jit(mech.G_values)(q, t))
+    assert np.max(np.abs(G - compressed)) <= 1e-14 * max(1.0, np.max(np.abs(G)))
+    # ... and be no larger than the structure: no column is coloured densely by mistake.
+    assert coloring.num_colors <= mech.n
+
+
+@pytest.mark.parametrize("spec", ["chain:N=16", "sps-ring:N=6", "sps-ring:N=40"])
+@pytest.mark.parametrize("kind", STRUCTURED)
+def test_structured_schur_solve_equals_dense(spec, kind):
+    # sps-ring:N=40 has hub rows (80 entries) that become the banded solver's border.
+    case = problems.make(spec)
+    mech = case.mech
+    q, t = random_state(case), jnp.asarray(0.0)
+    rhs = jnp.asarray(np.random.default_rng(1).standard_normal((mech.m, 3)))
+    dense, structured = mech.schur("dense"), mech.schur(kind)
+    assert structured.name == kind and structured.nnz > 0
+    x_dense = jax.jit(lambda q, r: dense.solve(dense.factor(q, t), r))(q, rhs)
+    F = jax.jit(structured.factor)(q, t)
+    x = jax.jit(structured.solve)(F, rhs)
+    assert bool(F.ok)
+    # Both are backward stable solves of a system with condition number below 1e3 here.
+    assert np.max(np.abs(x - x_dense)) <= 1e-12 * np.max(np.abs(x_dense))
+
+
+@pytest.mark.parametrize("kind", STRUCTURED)
+def test_structured_solve_does_not_depend_on_the_order_of_the_constraints(kind):
+    # Reversing the constraints permutes S; the solvers reorder it themselves (reverse
+    # Cuthill-McKee, minimum degree), so the multipliers are the same, permuted.
+    case = problems.make("sps-ring:N=40")
+    system = case.system
+    flipped = System(system.n, system.m, system.mass,
+                     lambda q, t: system.constraints(q, t)[::-1], system.potential)
+    q, t = random_state(case), jnp.asarray(0.0)
+    rhs = jnp.asarray(np.random.default_rng(2).standard_normal(system.m))
+    solvers = [s.mech.schur(kind) for s in (system, flipped)]
+    x, y = (jax.jit(lambda q, r, s=s: s.solve(s.factor(q, t), r))(q, r)
+            for s, r in zip(solvers, (rhs, rhs[::-1])))
+    assert np.max(np.abs(x - y[::-1])) <= 1e-12 * np.max(np.abs(x))
+
+
+@pytest.mark.parametrize("spec, h, t_end", [("chain:N=16", 1e-3, 0.2), ("sps-ring:N=6", 0.01, 1.0)])
+@pytest.mark.parametrize("key", ["rattle", "lobatto3ab3", "baumgarte-rk4"])
+def test_every_fixed_step_family_gives_the_dense_result_on_the_structured_path(spec, h, t_end, key):
+    # The same equations solved to round-off by two linear algebras: the states agree to
+    # accumulated round-off (chain:N=16 is chaotic, so the horizon is short).
+    _, dense = solve(spec, f"{key}:linear_solver=dense", t_end, h=h)
+    assert dense.linear_solver == "dense" and dense.pattern_nnz is None
+    for kind in STRUCTURED:
+        _, traj = solve(spec, f"{key}:linear_solver={kind}", t_end, h=h)
+        assert traj.linear_solver == kind and traj.pattern_nnz > 0
+        assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-11
+        assert np.max(np.abs(traj.v_final - dense.v_final)) <= 1e-10
+        assert np.max(traj.windows["pos"]) <= 1e-13 or key == "baumgarte-rk4"
+
+
+@pytest.mark.parametrize("spec", ["chain:N=16", "sps-ring:N=6", "andrews"])
+def test_ida_sparse_iteration_matrix_gives_the_dense_result(spec):
+    # andrews has a configuration-dependent mass: the sparse IDA path does not need a
+    # constant diagonal one. Same tolerances, same Jacobian values: IDA takes the same
+    # steps, so the states agree far below the tolerance.
+    case = problems.make(spec)
+    t_end = case.t0 + (0.2 if spec != "andrews" else 0.003)
+    _, dense = solve(spec, "ida-ggl:linsolver=dense", t_end, rtol=1e-8)
+    _, sparse = solve(spec, "ida-ggl:linsolver=sparse", t_end, rtol=1e-8)
+    assert sparse.linear_solver == "sparse" and dense.linear_solver == "dense"
+    assert sparse.counts["n_steps"] == dense.counts["n_steps"]
+    assert np.max(np.abs(sparse.q_final - dense.q_final)) <= 1e-10
+
+
+@pytest.mark.parametrize("spec", ["sps-ring:N=40", "andrews", "bricard"])
+@pytest.mark.parametrize("form", sorted(FORMULATIONS))
+def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form):
+    # sps-ring:N=40's hub gives the iteration matrix dense rows and dense columns, which
+    # are evaluated one by one beside the coloured rest.
+    case = problems.make(spec)
+    mech = case.mech
+    F = FORMULATIONS[form].residual(mech)
+    y0, yp0 = consistent_values(mech, FORMULATIONS[form].multiplier_blocks, 0.0, case.q0, case.v0)
+    y = jnp.asarray(y0 + 1e-3 * np.random.default_rng(3).standard_normal(len(y0)))
+
+    def f(z):
+        return F(jnp.asarray(0.1), z, jnp.asarray(yp0) + 7.0 * (z - y))
+
+    jac = SparseJacobian(f, y)
+    if spec == "sps-ring:N=40":
+        assert len(jac.dense_rows) > 0 and len(jac.dense_cols) > 0
+        assert jac.n_colours + len(jac.dense_rows) + len(jac.dense_cols) < len(y0) // 10
+    J = np.asarray(jax.jacfwd(f)(y))
+    S = np.zeros_like(J)
+    S[jac.rows, jac.cols] = np.asarray(jax.jit(jac.values)(y))
+    assert np.max(np.abs(J - S)) <= 1e-13 * max(1.0, np.max(np.abs(J)))
+
+
+def redundant_chain():
+    """chain:N=12 with its last constraint repeated: G has rank m - 1 everywhere."""
+    case = problems.make("chain:N=12")
+    system = case.system
+    doubled = System(system.n, system.m + 1, system.mass,
+                     lambda q, t: jnp.concatenate([system.constraints(q, t),
+                                                   system.constraints(q, t)[-1:]]),
+                     system.potential)
+    return problems.make_case("chain-redundant", doubled, case.q0, case.v0, (0.0, 0.05), {},
+                              energy_scale=case.energy_scale)
+
+
+def test_one_policy_for_redundant_constraints():
+    # Dense: the basic solution, a valid run. Structured: the deficiency is detected and
+    # the run fails with the policy's message instead of returning meaningless states.
+    import integrators
+    from integrators import Grid
+
+    case = redundant_chain()
+    runs = {kind: integrators.make(f"rattle:linear_solver={kind}", h=1e-3).prepare(
+        case, Grid(case.t0, case.t_end))() for kind in ("dense", "banded", "superlu")}
+    assert runs["dense"].status == "ok"
+    assert np.max(runs["dense"].windows["pos"]) <= 1e-13
+    for kind in STRUCTURED:
+        assert runs[kind].status == "failed"
+        assert "numerically singular" in runs[kind].message
+        assert "linear_solver=dense" in runs[kind].message
+
+
+def test_structured_solvers_refuse_a_mass_that_is_not_a_constant_diagonal():
+    mech = problems.make("andrews").mech
+    assert mech.schur("auto").name == "dense"
+    with pytest.raises(ValueError, match="constant diagonal mass"):
+        mech.schur("banded")
+
+
+def test_auto_choice_follows_the_structure():
+    assert problems.make("pendulum").mech.schur().name == "dense"
+    assert problems.make("chain:N=64").mech.schur().name == "banded"
+    # The ring's hub rows form the border; the core stays a narrow band.
+    ring = problems.make("sps-ring:N=64").mech.schur()
+    assert ring.name == "banded" and len(ring.pattern.border) == 2
+    assert ring.pattern.bandwidth <= 4
