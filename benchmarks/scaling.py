@@ -207,7 +207,10 @@ def point_main(argv: list[str]) -> int:
     try:
         import integrators
         import problems
+        from benchmarks.worker import load_plugins
         from integrators.base import Grid
+
+        load_plugins()
 
         start = time.perf_counter()
         case = problems.make(f"{spec['problem']}:N={spec['n']}").with_t_end(
@@ -645,14 +648,15 @@ def settings_of(args) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from benchmarks import worker
+
     args = parser().parse_args(argv)
     try:
+        worker.load_plugins()
         settings = settings_of(args)
     except ValueError as exc:
         print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_INPUT
-    from benchmarks import worker
-
     env = {**os.environ, **worker.thread_environment()}
     started = time.time()
     load_before = os.getloadavg()[0]
