@@ -355,7 +355,11 @@ def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
                                                                         else [])
         ending, stdout, stderr, _ = run_process(command, settings["limit"], dict(os.environ))
         if ending:
-            point.status = "timeout" if ending == "timeout" else "failed"
+            # Exit status 1 is the yardstick's own failure report (Newton, or no memory for
+            # the arrays); anything else (2: arguments it refused, a signal) is a defect.
+            point.status = ("timeout" if ending == "timeout" else
+                            "out of memory" if memory_exhausted(stderr) else
+                            "failed" if ending == "exit code 1" else "error")
             point.message = f"{ending}: {' '.join(stderr.split())[-400:]}"
             break
         lines = stdout.splitlines()
