@@ -1,4 +1,8 @@
-"""``python -m reports --db results/driftbench.sqlite --out results/``: rebuild the report."""
+"""``python -m reports --db results/driftbench.sqlite --out results/``: rebuild the report.
+
+``--scaling DIR`` adds the section of the scaling benchmark's results in ``DIR``
+(``python -m benchmarks.scaling --out DIR``).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ from pathlib import Path
 
 from benchmarks.store import STORE_NAME, StoreError
 from reports import build
+from reports.scaling import ScalingError
 
 
 def main(argv=None) -> int:
@@ -16,10 +21,13 @@ def main(argv=None) -> int:
     p.add_argument("--db", type=Path, help=f"results store (default: OUT/{STORE_NAME})")
     p.add_argument("--out", type=Path, default=Path("results"),
                    help="output folder (default: results/)")
+    p.add_argument("--scaling", type=Path, metavar="DIR",
+                   help="add the scaling section from DIR/scaling.json "
+                        "(python -m benchmarks.scaling --out DIR)")
     args = p.parse_args(argv)
     try:
-        paths = build(args.db or args.out / STORE_NAME, args.out)
-    except StoreError as exc:
+        paths = build(args.db or args.out / STORE_NAME, args.out, args.scaling)
+    except (StoreError, ScalingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for path in paths[:2]:

@@ -268,3 +268,45 @@ def step_violation(entries: list[dict], colors: dict, title: str, claim: float) 
         _arrange(fig, 1, 1, ax.get_legend_handles_labels(), side=2.6)
         fig.suptitle(title)
         return _svg(fig)
+
+
+def scaling(panels: list[tuple[str, list[dict]]], colors: dict) -> str:
+    """Time per step against N, log-log, one panel per problem and one line per family.
+
+    ``panels``: ``(title, lines)`` with each line a dict of ``label``, ``key`` (the colour
+    key; None draws the line black and dashed, for a yardstick), ``n`` and ``cost`` (the
+    finished points). A dotted line of slope 1 through the lowest first point marks linear
+    growth.
+    """
+    cols = max(1, len(panels))
+    with rc_context(RC):
+        fig, axes = _figure(1, cols, 4.5 * cols, 3.6)
+        for ax, (title, lines) in zip(axes[0], panels):
+            drawn = [line for line in lines if len(line["n"])]
+            for line in drawn:
+                if line["key"] is None:
+                    ax.loglog(line["n"], line["cost"], color="k", ls="--", marker=".", ms=5,
+                              lw=1.0, label=line["label"])
+                else:
+                    color, marker = colors[line["key"]]
+                    ax.loglog(line["n"], line["cost"], color=color, marker=marker, ms=4,
+                              lw=1.0, label=line["label"])
+            if not drawn:
+                _empty(ax, "no finished points")
+                continue
+            n0, c0 = min(((line["n"][0], line["cost"][0]) for line in drawn),
+                          key=lambda p: p[1])
+            n_max = max(max(line["n"]) for line in drawn)
+            ns = np.array([n0, max(n_max, 2 * n0)], dtype=float)
+            ax.loglog(ns, c0 * ns / n0, color="0.5", ls=":", lw=0.8, label="slope 1 (linear)")
+            ax.set_xlabel("N")
+            ax.set_ylabel("time per step [s]")
+            ax.set_title(title)
+        handles, labels = [], []
+        for ax in axes.flat:
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                if lab not in labels:
+                    handles.append(h)
+                    labels.append(lab)
+        _arrange(fig, 1, cols, (handles, labels), ncols=3)
+        return _svg(fig)

@@ -4,7 +4,8 @@ Sections, in order: the headline (which method wins each problem for drift, for 
 for cost at matched accuracy), its history across commits (when the store holds several),
 the seed reproduction, one section per problem (summary table, drift series, work-precision
 diagrams, convergence orders), the study sections (tables and figures stored by study
-suites) and the provenance of the runs shown.
+suites), the scaling section when a scaling benchmark's output folder is given
+(:mod:`reports.scaling`) and the provenance of the runs shown.
 
 Per-problem sections show the latest run of each identity (problem, integrator, setting,
 horizon); the history uses every stored run.
@@ -21,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
-from reports import figures, seed
+from reports import figures, scaling as scaling_section, seed
 from reports.analysis import (Convergence, at_sweep_horizon, convergence, cost_winner,
                               drift_winner, energy_winner, fmt, growth_of, is_sensitive,
                               latest, representative, setting, text)
@@ -35,12 +36,15 @@ NOT_APPLICABLE = "n/a"
 MAX_STUDY_ROWS = 60
 
 
-def build(db_path, out_dir) -> list[Path]:
+def build(db_path, out_dir, scaling=None) -> list[Path]:
     """Write ``report.md``, its SVG figures and ``report.html`` under ``out_dir``.
 
+    ``scaling`` is the output folder of ``python -m benchmarks.scaling``, whose results
+    get a section of their own (:class:`reports.scaling.ScalingError` if it holds none).
     Returns the paths written, the two reports first.
     """
     db_path, out_dir = Path(db_path), Path(out_dir)
+    scaling_data = scaling_section.load(scaling) if scaling is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = load_runs(db_path)
     artifacts = load_artifacts(db_path)
@@ -62,6 +66,8 @@ def build(db_path, out_dir) -> list[Path]:
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], growth, series, colors)
     _studies(doc, artifacts)
+    if scaling_data is not None:
+        scaling_section.section(doc, scaling_data)
     _provenance(doc, runs, current)
     built = f"Report built {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {db_path.name}."
     doc.add(Para(built))

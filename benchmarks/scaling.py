@@ -1,0 +1,756 @@
+"""Benchmark: cost per step against system size, every family beside a plain-C O(N) RATTLE.
+
+What runs
+    Every family (default ``rattle``, ``lobatto3ab3``, ``baumgarte-rk4`` and ``ida-ggl``) on
+    ``chain:N`` and ``sps-ring:N`` (hub rows on) for N = 64, 256, 1024, 4096, 16384, each
+    point in a fresh process, N ascending, the families of one N one after another so that
+    a change in the machine's load hits them alike. Each point takes :data:`STEPS` steps of
+    a fixed step size per problem (:data:`STEP_SIZES`); ``ida-ggl`` runs at rtol = atol =
+    :data:`RTOL` over the same horizon and is measured per internal step. Both step sizes
+    are stable at N = 16384 with a margin of two: the fastest motion of both systems grows
+    like N (transverse waves along the links), so ``h N`` decides; 100 steps at N = 256
+    with the ``h N`` of N = 16384 and with twice it finished with relative energy errors
+    of at most 1.1e-4 (chain: ``baumgarte-rk4``, the explicit method; ring: ``rattle``
+    and ``baumgarte-rk4``), and the C RATTLE ran 2000 steps of the chain at N = 16384 with
+    ``h = 2e-5`` (at ``4e-5`` its Newton failed). ``lobatto3ab3`` was checked the same way
+    on the chain at N = 16 only (dense, it cannot run N = 256 today) and not on the ring;
+    ``ida-ggl`` chooses its own steps.
+
+    At each chain N the C yardstick ``benchmarks/yardstick/rattle_chain.c`` runs the same
+    steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
+    N multipliers with rattle's convergence test and tolerance, each iteration one
+    tridiagonal Thomas solve; the velocity projection, another), and the same per-step
+    measurement of ``|g|``, ``|G v|``, ``|H - H0|`` into per-window maxima. It is compiled
+    here (``cc`` or ``gcc`` from ``PATH``, ``-O2``); without a compiler it is skipped with a
+    message. ``rattle`` and C must end in the same state (:data:`AGREE_Q`,
+    :data:`AGREE_V`).
+
+What each number is
+    time per step
+        wall-clock (and CPU) time of ``solve()`` over the steps it took: the compiled time
+        loop with its in-loop measurement and the read-back of the bounded trajectory (for
+        ``ida-ggl``, IDA's one-step calls, our residual and Jacobian callbacks and the
+        per-step recording: what running IDA costs here), divided by the accepted
+        (internal) steps. Building the case, set-up and compilation are excluded and
+        reported apart. C: its own clocks around its time loop. Both are the median of
+        ``--repeats`` timed runs, more while they total less than :data:`MIN_TIMED`
+        seconds (at most :data:`MAX_REPEATS`), fewer once they total
+        :data:`REPEAT_BUDGET` seconds (:func:`more`). Each process runs with one intra-op
+        thread (the benchmark workers' settings,
+        :func:`benchmarks.worker.thread_environment`); C is single-threaded.
+    Newton iterations per step
+        the trajectory's ``n_newton`` over its steps (IDA: nonlinear iterations per
+        internal step; ``baumgarte-rk4`` has none).
+    peak memory
+        the peak resident set of the point's whole process, from its start to its end
+        (``VmHWM``, which the process reads from ``/proc`` at its end; for a process killed
+        at the time limit the benchmark reads it just before the kill): interpreter, JAX,
+        the case, compilation and the solves. Not ``os.wait4``'s ``ru_maxrss``: Linux
+        charges a started program with the resident set of the process that started it (a
+        400 MB parent made ``/bin/true`` peak at 400 MB by ``wait4``). The same figure for a
+        process that only imports the suite and computes once is printed as the baseline.
+    linear solver
+        ``Trajectory.linear_solver``, what the method says ran.
+
+A point runs under a time limit (``--limit``, default :data:`LIMIT` s for the whole process)
+and an address-space cap (``--memory-limit``). A point that fails, runs out of time or out
+of memory gets that status, and its family is not run at larger N on that problem (status
+``not run``). The fitted exponent is the least-squares slope of log time per step against
+log N over the finished points with N >= :data:`FIT_FROM` (all finished points if fewer
+than two). The bars of the scaling issue are printed with PASS, FAIL or NOT MEASURED (a
+point the options left out) and the measured number.
+
+Writes ``scaling.json`` (settings, machine, load, points, fits, bars), ``scaling.csv``
+(one row per point) and the report section (``scaling.md``, ``scaling.html``,
+``figures/scaling.svg``; ``python -m reports --scaling DIR`` adds it to the main report)
+under ``--out``. Exit status 1 only when something did not run as it should (a point that
+errs for a reason other than time or memory, the C yardstick not compiling, C and rattle
+disagreeing); a missed bar is not an error. Bad options: one line and exit status 2.
+
+Usage::
+
+    python -m benchmarks.scaling
+    python -m benchmarks.scaling --n 64 256 --problems chain --families rattle --limit 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import platform
+import resource
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+YARDSTICK = Path(__file__).resolve().parent / "yardstick" / "rattle_chain.c"
+
+FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
+SIZES = (64, 256, 1024, 4096, 16384)
+#: Fixed step per problem, stable at N = 16384 (module docstring).
+STEP_SIZES = {"chain": 1e-5, "sps-ring": 1e-4}
+STEPS = 100
+#: Tolerance of the adaptive families (atol = rtol).
+RTOL = 1e-8
+#: Seconds per point, the whole process.
+LIMIT = 60.0
+#: Address-space cap per point (GiB): keeps a dense method from taking a shared machine's
+#: memory; an idle process with JAX imported maps about 1.5 GiB.
+MEMORY_LIMIT_GIB = 8.0
+REPEATS = 3
+#: Short solves are repeated until they total this many seconds (at most MAX_REPEATS
+#: times), so that one preemption does not decide a median of a few milliseconds.
+MIN_TIMED, MAX_REPEATS = 0.2, 50
+#: Timed solves stop once they total this many seconds.
+REPEAT_BUDGET = 10.0
+#: Smallest N of the exponent fit where at least two points reach it.
+FIT_FROM = 1024
+#: Agreement of C and rattle at the end of a run (max-norm). Both iterate Newton to the same
+#: tolerance; on chain:N=8 over 300 steps of h = 1e-3 they end 6e-16 (q) and 1.3e-14 (v)
+#: apart. Gravity off by 0.1 % moves q by 5e-9 and v by 1e-5 over 100 steps of 1e-5.
+AGREE_Q, AGREE_V = 1e-12, 1e-10
+#: Seconds between polls of a running point.
+POLL = 0.05
+C_NAME = "C"
+STATUSES = ("ok", "failed", "timeout", "out of memory", "error", "not run")
+EXIT_INPUT = 2
+
+#: The bars of the scaling issue.
+RATIO_BAR, RATIO_SIZES = 10.0, (1024, 16384)
+GROWTH_BAR, GROWTH_SIZES = 24.0, (1024, 16384)
+SPARK_SIZE, SPARK_MEMORY, SPARK_RATIO, SPARK_STEPS = 4096, 2 << 30, 30.0, 100
+RATTLE_MEMORY_SIZE, RATTLE_MEMORY = 16384, 2 << 30
+RING_SIZE, RING_H, RING_STEPS, RING_RTOL = 1024, 1e-4, 100, 1e-8
+RING_SECONDS, RING_POS = 60.0, 1e-10
+
+
+@dataclass
+class Point:
+    """One family (or the C yardstick) on one problem at one N; None where not measured."""
+
+    problem: str
+    n: int
+    family: str
+    status: str
+    message: str = ""
+    steps: int | None = None
+    rejected: int | None = None
+    newton_per_step: float | None = None
+    wall_per_step: float | None = None
+    cpu_per_step: float | None = None
+    ratio_c: float | None = None
+    ratio_c_cpu: float | None = None
+    repeats: int | None = None
+    build_s: float | None = None
+    setup_s: float | None = None
+    first_solve_s: float | None = None
+    process_s: float | None = None
+    peak_rss: int | None = None
+    max_pos: float | None = None
+    max_vel: float | None = None
+    max_energy: float | None = None
+    linear_solver: str | None = None
+    pattern_nnz: int | None = None
+
+
+# --------------------------------------------------------------------------- one point
+
+def peak_rss(pid: int | str = "self") -> int | None:
+    """Peak resident set of process ``pid`` since its program started (``VmHWM``, bytes);
+    None where ``/proc`` does not give it."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def memory_exhausted(text: str) -> bool:
+    """Whether an error text says that an allocation failed."""
+    return any(s in text for s in ("RESOURCE_EXHAUSTED", "MemoryError", "Out of memory",
+                                   "out of memory", "bad_alloc", "Cannot allocate memory"))
+
+
+def more(times: list[float], repeats: int) -> bool:
+    """Whether to time another run after ``times``: at least ``repeats``, more while they
+    total under :data:`MIN_TIMED` s, at most :data:`MAX_REPEATS`, and none once they total
+    :data:`REPEAT_BUDGET` s."""
+    total = sum(times)
+    return (len(times) < MAX_REPEATS and total < REPEAT_BUDGET
+            and (len(times) < repeats or total < MIN_TIMED))
+
+
+def point_main(argv: list[str]) -> int:
+    """Child side of one point: ``argv[0]`` is its JSON settings; prints one JSON line.
+
+    The address-space cap is set before JAX is imported, so that every allocation,
+    JAX's included, is under it.
+    """
+    spec = json.loads(argv[0])
+    cap = spec["memory_limit"]
+    if cap:
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+    deadline = time.monotonic() + spec["limit"]
+    out: dict = {}
+    try:
+        import integrators
+        import problems
+        from benchmarks.worker import load_plugins
+        from integrators.base import Grid
+
+        load_plugins()
+
+        start = time.perf_counter()
+        case = problems.make(f"{spec['problem']}:N={spec['n']}").with_t_end(
+            spec["steps"] * spec["h"])
+        integ = integrators.make(spec["family"], h=spec["h"], rtol=spec["rtol"])
+        out["build_s"] = time.perf_counter() - start
+        # Two samples (start and end): the default 2000 sampled states would be the
+        # harness's memory (0.5 GB at N = 16384), not the method's.
+        grid = Grid(case.t0, case.t_end, n_samples=2)
+        start = time.perf_counter()
+        solve = integ.prepare(case, grid)
+        out["setup_s"] = time.perf_counter() - start
+        walls, cpus = [], []
+        while True:
+            start, cpu = time.perf_counter(), time.process_time()
+            traj = solve()
+            walls.append(time.perf_counter() - start)
+            cpus.append(time.process_time() - cpu)
+            # A margin of twice the last solve: a timing repeat must not turn a finished
+            # point into a timeout.
+            if (not more(walls, spec["repeats"])
+                    or time.monotonic() + 2.0 * walls[-1] > deadline):
+                break
+        steps = traj.counts["n_steps"]
+        out.update(
+            status=traj.status, message=traj.message, steps=steps,
+            rejected=traj.counts["n_rejected"], first_solve_s=walls[0], repeats=len(walls),
+            newton_per_step=traj.counts["n_newton"] / steps if steps else None,
+            wall_per_step=statistics.median(walls) / steps if steps else None,
+            cpu_per_step=statistics.median(cpus) / steps if steps else None,
+            **{f"max_{k}": float(np.max(traj.windows[k])) if len(traj.windows[k]) else None
+               for k in ("pos", "vel", "energy")},
+            linear_solver=traj.linear_solver, pattern_nnz=traj.pattern_nnz)
+        if spec.get("state"):
+            np.save(spec["state"], np.concatenate([traj.q_final, traj.v_final]))
+    except Exception as exc:  # recorded as the point's status, never fatal to the benchmark
+        text = f"{type(exc).__name__}: {exc}"
+        out.update(status="out of memory" if memory_exhausted(text) else "error",
+                   message=" ".join(text.split())[:500])
+    out["peak_rss"] = peak_rss()
+    print(json.dumps(out))
+    return 0
+
+
+CHILD = "import sys; from benchmarks.scaling import point_main; sys.exit(point_main(sys.argv[1:]))"
+
+
+def run_process(command: list[str], limit: float,
+                env: dict) -> tuple[str, str, str, int | None]:
+    """Run ``command`` from the repository root under a wall-clock ``limit``.
+
+    Returns ``(ending, stdout, stderr, peak)``: ``ending`` is ``""`` for a normal exit,
+    ``"timeout"`` when it was killed at the limit, else how it ended; ``peak`` is the last
+    :func:`peak_rss` read while it ran (read just before a kill; a process that reports its
+    own peak at its end is more exact).
+    """
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=out, stderr=err, text=True)
+        deadline = time.monotonic() + limit
+        killed, peak = False, None
+        while True:
+            # Read before polling: the status of an exited process no longer has VmHWM.
+            peak = peak_rss(proc.pid) or peak
+            if proc.poll() is not None:
+                break
+            if time.monotonic() >= deadline:
+                proc.kill()
+                proc.wait()
+                killed = True
+                break
+            time.sleep(POLL)
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    code = proc.returncode
+    if killed:
+        ending = "timeout"
+    elif code < 0:
+        ending = f"killed by {signal.Signals(-code).name}"
+    else:
+        ending = "" if code == 0 else f"exit code {code}"
+    return ending, stdout, stderr, peak
+
+
+def run_family(problem: str, n: int, family: str, settings: dict, env: dict,
+               state: Path | None = None) -> Point:
+    """One point of a family in a fresh process."""
+    spec = {"problem": problem, "n": n, "family": family, "h": settings["h"][problem],
+            "steps": settings["steps"], "rtol": settings["rtol"], "repeats": settings["repeats"],
+            "limit": settings["limit"], "memory_limit": settings["memory_limit"],
+            "state": str(state) if state else None}
+    start = time.perf_counter()
+    ending, stdout, stderr, rss = run_process(
+        [sys.executable, "-c", CHILD, json.dumps(spec)], settings["limit"], env)
+    point = Point(problem, n, family, "error", process_s=time.perf_counter() - start,
+                  peak_rss=rss)
+    lines = stdout.strip().splitlines()
+    if ending == "timeout":
+        point.status = "timeout"
+        point.message = f"killed at the limit of {settings['limit']:g} s"
+    elif ending == "killed by SIGKILL":
+        point.status = "out of memory"
+        point.message = "killed by SIGKILL from outside (the out-of-memory killer, most likely)"
+    elif ending or not lines:
+        tail = " ".join(stderr.split())[-400:]
+        point.status = "out of memory" if memory_exhausted(stderr) else "error"
+        point.message = f"the point's process ended with {ending or 'no result'}: {tail}"
+    else:
+        result = json.loads(lines[-1])
+        for key, value in result.items():
+            setattr(point, key, value)
+    return point
+
+
+def compile_yardstick(workdir: Path) -> tuple[Path | None, str, bool]:
+    """Compile the C yardstick: ``(executable or None, note, failed)``; ``failed`` is True
+    when a compiler exists and the build failed (no compiler is a skip, not a failure)."""
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        return None, "no C compiler (cc or gcc) on PATH: the C yardstick is skipped", False
+    exe = workdir / "rattle_chain"
+    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICK), "-lm"]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        return None, f"{' '.join(command)} failed: {done.stderr.strip()}", True
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
+    return exe, f"{' '.join(command)}  [{version.splitlines()[0] if version else compiler}]", False
+
+
+def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
+    """The C yardstick on chain:N, ``repeats`` runs; the point and its final ``(q, v)``."""
+    h, steps, tol = settings["h"]["chain"], settings["steps"], settings["newton_tol"]
+    point = Point("chain", n, C_NAME, "ok", linear_solver="tridiagonal (Thomas)")
+    walls, cpus, state = [], [], None
+    start = time.perf_counter()
+    while more(walls, settings["repeats"]):
+        first = not walls
+        command = [str(exe), str(n), str(steps), repr(h), repr(tol)] + (["state"] if first
+                                                                        else [])
+        ending, stdout, stderr, _ = run_process(command, settings["limit"], dict(os.environ))
+        if ending:
+            # Exit status 1 is the yardstick's own failure report (Newton, or no memory for
+            # the arrays); anything else (2: arguments it refused, a signal) is a defect.
+            point.status = ("timeout" if ending == "timeout" else
+                            "out of memory" if memory_exhausted(stderr) else
+                            "failed" if ending == "exit code 1" else "error")
+            point.message = f"{ending}: {' '.join(stderr.split())[-400:]}"
+            break
+        lines = stdout.splitlines()
+        head = lines[0].split()
+        walls.append(float(head[1]))
+        cpus.append(float(head[2]))
+        point.steps = int(head[0])
+        point.max_pos, point.max_vel, point.max_energy = map(float, head[3:6])
+        point.newton_per_step = int(head[6]) / point.steps
+        if int(head[7]) >= 0:
+            point.peak_rss = max(point.peak_rss or 0, int(head[7]) * 1024)
+        if first:
+            state = np.concatenate([np.array(lines[1].split(), float),
+                                    np.array(lines[2].split(), float)])
+    point.process_s = time.perf_counter() - start
+    if walls:
+        point.repeats = len(walls)
+        point.wall_per_step = statistics.median(walls) / point.steps
+        point.cpu_per_step = statistics.median(cpus) / point.steps
+    return point, state
+
+
+def baseline_rss(env: dict) -> int | None:
+    """Peak resident set of a process that imports the suite and computes once (bytes)."""
+    code = ("import jax, jax.numpy as jnp, integrators, problems; "
+            "from benchmarks.scaling import peak_rss; "
+            "jax.block_until_ready(jnp.ones(3) * 2.0); print(peak_rss())")
+    ending, stdout, stderr, _ = run_process([sys.executable, "-c", code], LIMIT, env)
+    if ending:
+        raise RuntimeError(f"the baseline process ended with {ending}: {stderr[-400:]}")
+    value = stdout.split()[-1]
+    return None if value == "None" else int(value)
+
+
+# --------------------------------------------------------------------------- analysis
+
+def fit_exponent(ns, costs, from_n: int = FIT_FROM) -> tuple[float | None, list[int]]:
+    """Least-squares slope of ``log cost`` against ``log N``, and the N it used.
+
+    Uses the points with ``N >= from_n`` when there are at least two, else all points;
+    ``(None, [])`` with fewer than two points. Non-positive or missing costs are ignored.
+    """
+    pairs = sorted((int(n), float(c)) for n, c in zip(ns, costs)
+                   if c is not None and math.isfinite(c) and c > 0)
+    large = [p for p in pairs if p[0] >= from_n]
+    used = large if len(large) >= 2 else pairs
+    if len(used) < 2 or len({n for n, _ in used}) < 2:
+        return None, []
+    x = np.log([n for n, _ in used])
+    y = np.log([c for _, c in used])
+    return float(np.polyfit(x, y, 1)[0]), [n for n, _ in used]
+
+
+def fits(points: list[Point]) -> list[dict]:
+    """The fitted exponent of time per step against N of every (problem, family)."""
+    rows = []
+    for problem, family in dict.fromkeys((p.problem, p.family) for p in points):
+        done = [p for p in points if p.problem == problem and p.family == family
+                and p.status == "ok"]
+        slope, used = fit_exponent([p.n for p in done], [p.wall_per_step for p in done])
+        rows.append({"problem": problem, "family": family, "exponent": slope, "n": used})
+    return rows
+
+
+def _find(points, problem, family, n) -> Point | None:
+    return next((p for p in points if (p.problem, p.family, p.n) == (problem, family, n)),
+                None)
+
+
+def _verdict(name: str, held: bool | None, value: str) -> dict:
+    return {"bar": name, "verdict": {True: "PASS", False: "FAIL", None: "NOT MEASURED"}[held],
+            "value": value}
+
+
+def _missing(point: Point | None, what: str) -> tuple[bool | None, str]:
+    """The verdict of a bar whose point is not ``ok``: left out of the run is not measured;
+    a point that did not finish fails the bar."""
+    if point is None:
+        return None, f"{what} is not in this run"
+    return False, f"{what}: {point.status}" + (f" ({point.message})" if point.message else "")
+
+
+def _ratio_bar(name: str, pair: tuple, labels: tuple[str, str], limit: float,
+               unit: str = "") -> dict:
+    """A bar on ``pair[0]``'s time per step over ``pair[1]``'s (wall clock; the CPU-time
+    ratio is given beside it)."""
+    # A point that did not finish fails the bar even where the other is left out.
+    for p, label in sorted(zip(pair, labels), key=lambda x: x[0] is None):
+        if p is None or p.status != "ok":
+            return _verdict(name, *_missing(p, label))
+    num, den = pair
+    wall = num.wall_per_step / den.wall_per_step
+    cpu = num.cpu_per_step / den.cpu_per_step
+    return _verdict(name, wall <= limit, f"{wall:.3g}{unit} (by CPU time {cpu:.3g}{unit})")
+
+
+def _memory_bar(name: str, point: Point | None, label: str, limit: int) -> dict:
+    """A bar on a finished point's peak resident set."""
+    if point is None or point.status != "ok":
+        return _verdict(name, *_missing(point, label))
+    if point.peak_rss is None:
+        return _verdict(name, None, "no peak memory on this system (no /proc)")
+    return _verdict(name, point.peak_rss < limit, f"{point.peak_rss / 2**20:.0f} MiB")
+
+
+def bars(points: list[Point], settings: dict) -> list[dict]:
+    """The bars of the scaling issue, each with PASS, FAIL or NOT MEASURED and its number."""
+    out = []
+    for n in RATIO_SIZES:
+        out.append(_ratio_bar(
+            f"rattle / C time per step on chain:N={n} <= {RATIO_BAR:g}",
+            (_find(points, "chain", "rattle", n), _find(points, "chain", C_NAME, n)),
+            (f"rattle at N={n}", f"C at N={n}"), RATIO_BAR))
+    lo, hi = GROWTH_SIZES
+    for problem in settings["problems"]:
+        for family in FAMILIES:
+            per = " per internal step" if family == "ida-ggl" else ""
+            out.append(_ratio_bar(
+                f"{family} on {problem}: time{per} N={lo} -> {hi} grows <= {GROWTH_BAR:g}x",
+                (_find(points, problem, family, hi), _find(points, problem, family, lo)),
+                (f"{family} at N={hi}", f"{family} at N={lo}"), GROWTH_BAR, "x"))
+    spark = _find(points, "chain", "lobatto3ab3", SPARK_SIZE)
+    name = (f"lobatto3ab3 finishes {SPARK_STEPS} steps of chain:N={SPARK_SIZE} with peak "
+            f"memory < {SPARK_MEMORY / 2**30:g} GiB")
+    if spark is not None and settings["steps"] != SPARK_STEPS:
+        out.append(_verdict(name, None, f"this run takes {settings['steps']} steps"))
+    else:
+        out.append(_memory_bar(name, spark, f"lobatto3ab3 at N={SPARK_SIZE}", SPARK_MEMORY))
+    out.append(_ratio_bar(
+        f"lobatto3ab3 / rattle time per step on chain:N={SPARK_SIZE} <= {SPARK_RATIO:g}",
+        (spark, _find(points, "chain", "rattle", SPARK_SIZE)),
+        (f"lobatto3ab3 at N={SPARK_SIZE}", f"rattle at N={SPARK_SIZE}"), SPARK_RATIO))
+    out.append(_memory_bar(
+        f"rattle on chain:N={RATTLE_MEMORY_SIZE}: peak memory < {RATTLE_MEMORY / 2**30:g} GiB",
+        _find(points, "chain", "rattle", RATTLE_MEMORY_SIZE), f"rattle at N={RATTLE_MEMORY_SIZE}",
+        RATTLE_MEMORY))
+    out.extend(ring_bars(points, settings))
+    return out
+
+
+def ring_bars(points: list[Point], settings: dict) -> list[dict]:
+    """sps-ring:N=1024 (hub on): 100 steps of h = 1e-4 (ida-ggl at rtol 1e-8 over the same
+    0.01 s), each ``ok`` within a minute (building, set-up and one solve), and max ``|g|``
+    at most 1e-10 for rattle and lobatto3ab3."""
+    out = []
+    same = (settings["steps"] == RING_STEPS and settings["h"].get("sps-ring") == RING_H
+            and settings["rtol"] == RING_RTOL)
+    for family in FAMILIES:
+        name = (f"{family} on sps-ring:N={RING_SIZE}: ok within {RING_SECONDS:g} s"
+                + (f", max|g| <= {RING_POS:g}" if family in ("rattle", "lobatto3ab3") else ""))
+        p = _find(points, "sps-ring", family, RING_SIZE)
+        if p is not None and not same:
+            out.append(_verdict(name, None, f"this run takes {settings['steps']} steps of "
+                                            f"h = {settings['h'].get('sps-ring'):g}, rtol "
+                                            f"{settings['rtol']:g}"))
+        elif p is not None and p.status == "ok":
+            seconds = p.build_s + p.setup_s + p.first_solve_s
+            held = seconds <= RING_SECONDS
+            value = f"{seconds:.3g} s (build {p.build_s:.2g}, set-up {p.setup_s:.2g}, solve " \
+                    f"{p.first_solve_s:.2g})"
+            if family in ("rattle", "lobatto3ab3"):
+                held = held and p.max_pos <= RING_POS
+                value += f", max|g| {p.max_pos:.2e}"
+            out.append(_verdict(name, held, value))
+        else:
+            out.append(_verdict(name, *_missing(p, f"{family} at N={RING_SIZE}")))
+    return out
+
+
+def agreement(c_state: np.ndarray, rattle_state: np.ndarray) -> tuple[bool, float, float]:
+    """Whether C and rattle end in the same ``(q, v)``; the two max-norm differences."""
+    half = len(c_state) // 2
+    dq = float(np.max(np.abs(c_state[:half] - rattle_state[:half])))
+    dv = float(np.max(np.abs(c_state[half:] - rattle_state[half:])))
+    return dq <= AGREE_Q and dv <= AGREE_V, dq, dv
+
+
+# --------------------------------------------------------------------------- output
+
+def _us(x: float | None) -> str:
+    return "-" if x is None else f"{1e6 * x:.4g}"
+
+
+def _g(x: float | None, spec: str = ".3g") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def print_table(points: list[Point], problem: str) -> None:
+    print(f"\n{problem}")
+    print(f"  {'N':>6} {'family':<14} {'status':<13} {'steps':>5} {'us/step':>9} "
+          f"{'cpu us':>9} {'x C':>7} {'Newton':>6} {'peak MiB':>8} {'set-up s':>8} "
+          f"{'max|g|':>8}  linear solver")
+    for p in (p for p in points if p.problem == problem):
+        rss = "-" if p.peak_rss is None else f"{p.peak_rss / 2**20:.0f}"
+        print(f"  {p.n:>6} {p.family:<14} {p.status:<13} {_g(p.steps, 'd'):>5} "
+              f"{_us(p.wall_per_step):>9} {_us(p.cpu_per_step):>9} {_g(p.ratio_c):>7} "
+              f"{_g(p.newton_per_step, '.2f'):>6} {rss:>8} {_g(p.setup_s, '.3g'):>8} "
+              f"{_g(p.max_pos, '.1e'):>8}  {p.linear_solver or '-'}")
+        if p.status != "ok" and p.message:
+            print(f"  {'':>6} {'':<14} {p.message[:160]}")
+
+
+def write(out: Path, data: dict, points: list[Point]) -> list[Path]:
+    """``scaling.json``, ``scaling.csv`` and the report section under ``out``."""
+    from reports.scaling import write as write_section
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scaling.json").write_text(json.dumps(data, indent=1))
+    with open(out / "scaling.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=[x.name for x in fields(Point)])
+        w.writeheader()
+        w.writerows(asdict(p) for p in points)
+    return [out / "scaling.json", out / "scaling.csv", *write_section(data, out)]
+
+
+# --------------------------------------------------------------------------- driver
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (no usage block), exit status 2."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="python -m benchmarks.scaling", description=__doc__.split("\n")[0])
+    p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
+                   help="problems (default: chain sps-ring)")
+    p.add_argument("--n", nargs="+", type=int, default=list(SIZES),
+                   help="sizes N (default: 64 256 1024 4096 16384)")
+    p.add_argument("--families", nargs="+", default=list(FAMILIES),
+                   help="integrator keys or specs (default: rattle lobatto3ab3 baumgarte-rk4 "
+                        "ida-ggl)")
+    p.add_argument("--steps", type=int, default=STEPS, help=f"steps per point (default {STEPS})")
+    p.add_argument("--h", nargs="+", default=[], metavar="PROBLEM=H",
+                   help="step size of a problem, e.g. chain=2e-5 (default: chain=1e-5 "
+                        "sps-ring=1e-4)")
+    p.add_argument("--rtol", type=float, default=RTOL,
+                   help=f"rtol = atol of adaptive families (default {RTOL:g})")
+    p.add_argument("--limit", type=float, default=LIMIT,
+                   help=f"seconds per point, whole process (default {LIMIT:g})")
+    p.add_argument("--memory-limit", type=float, default=MEMORY_LIMIT_GIB,
+                   help=f"address-space cap per point in GiB, 0 for none "
+                        f"(default {MEMORY_LIMIT_GIB:g})")
+    p.add_argument("--repeats", type=int, default=REPEATS,
+                   help=f"timed solves per point, median reported (default {REPEATS})")
+    p.add_argument("--out", type=Path, default=Path("results/scaling"),
+                   help="output folder (default: results/scaling)")
+    return p
+
+
+def settings_of(args) -> dict:
+    """Checked settings from the parsed options; ``ValueError`` names a bad one."""
+    if any(n < 2 for n in args.n):
+        raise ValueError(f"--n {min(args.n)}: sizes must be at least 2 (the smallest ring)")
+    for name, ok in (("steps", args.steps >= 1), ("repeats", args.repeats >= 1),
+                     ("limit", math.isfinite(args.limit) and args.limit > 0),
+                     ("memory-limit", math.isfinite(args.memory_limit)
+                      and args.memory_limit >= 0),
+                     ("rtol", 0 < args.rtol < 1)):
+        if not ok:
+            value = getattr(args, name.replace("-", "_"))
+            raise ValueError(f"--{name} {value:g}: out of range")
+    steps = dict(STEP_SIZES)
+    for item in args.h:
+        problem, sep, value = item.partition("=")
+        try:
+            h = float(value)
+        except ValueError:
+            h = math.nan
+        if not sep or problem not in STEP_SIZES or not (math.isfinite(h) and h > 0):
+            raise ValueError(f"--h {item}: give PROBLEM=H with PROBLEM one of "
+                             f"{', '.join(STEP_SIZES)} and H > 0")
+        steps[problem] = h
+    import integrators
+    from problems import SpecError, split_spec
+
+    newton_tol = None
+    for family in args.families:
+        try:
+            integ = integrators.make(family, h=steps["chain"], rtol=args.rtol)
+        except SpecError as exc:
+            raise ValueError(str(exc)) from None
+        if split_spec(family)[0] == "rattle":
+            newton_tol = integ.newton_tol
+    if newton_tol is None:
+        newton_tol = integrators.make("rattle").newton_tol
+    return {"problems": list(dict.fromkeys(args.problems)), "n": sorted(set(args.n)),
+            "families": list(dict.fromkeys(args.families)), "steps": args.steps, "h": steps,
+            "rtol": args.rtol, "limit": args.limit,
+            "memory_limit": int(args.memory_limit * 2**30), "repeats": args.repeats,
+            "newton_tol": newton_tol}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from benchmarks import worker
+
+    args = parser().parse_args(argv)
+    try:
+        worker.load_plugins()
+        settings = settings_of(args)
+    except ValueError as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return EXIT_INPUT
+    env = {**os.environ, **worker.thread_environment()}
+    started = time.time()
+    load_before = os.getloadavg()[0]
+    ok = True
+    points: list[Point] = []
+    agreements: list[dict] = []
+    print(f"{settings['steps']} steps per point; h = "
+          + ", ".join(f"{settings['h'][p]:g} ({p})" for p in settings["problems"])
+          + f"; adaptive families at rtol = atol = {settings['rtol']:g} over the same horizon; "
+            f"limit {settings['limit']:g} s per point (whole process); address-space cap "
+            + (f"{args.memory_limit:g} GiB" if settings["memory_limit"] else "none"))
+    print(f"1-minute load average {load_before:.2f} on {os.cpu_count()} cores (other processes "
+          f"share them: read the times with it)")
+    baseline = baseline_rss(env)
+    print("baseline: a process that imports the suite and computes once peaks at "
+          + ("? (no /proc)" if baseline is None else f"{baseline / 2**20:.0f} MiB resident"))
+    with tempfile.TemporaryDirectory() as tmp:
+        exe, note, c_failed = (compile_yardstick(Path(tmp)) if "chain" in settings["problems"]
+                               else (None, "not used (no chain in this run)", False))
+        print(f"C yardstick: {note}")
+        ok &= not c_failed
+        for problem in settings["problems"]:
+            stopped: dict[str, Point] = {}
+            for n in settings["n"]:
+                c_point = c_state = None
+                if problem == "chain" and exe is not None:
+                    c_point, c_state = run_c(exe, n, settings)
+                    points.append(c_point)
+                    ok &= c_point.status != "error"
+                for family in settings["families"]:
+                    if family in stopped:
+                        first = stopped[family]
+                        points.append(Point(problem, n, family, "not run",
+                                            f"stopped at N={first.n}: {first.status}"))
+                        continue
+                    state = Path(tmp) / f"rattle-{n}.npy" if c_state is not None \
+                        and family == "rattle" else None
+                    point = run_family(problem, n, family, settings, env, state)
+                    points.append(point)
+                    print(f"  {problem}:N={n} {family}: {point.status}"
+                          + (f", {_us(point.wall_per_step)} us/step"
+                             if point.status == "ok" else f" ({point.message[:120]})"),
+                          flush=True)
+                    ok &= point.status != "error"
+                    if point.status != "ok":
+                        stopped[family] = point
+                    if c_point is not None and c_point.status == "ok" and point.status == "ok":
+                        point.ratio_c = point.wall_per_step / c_point.wall_per_step
+                        point.ratio_c_cpu = point.cpu_per_step / c_point.cpu_per_step
+                    if state is not None and point.status == "ok":
+                        agree, dq, dv = agreement(c_state, np.load(state))
+                        agreements.append({"n": n, "agree": agree, "dq": dq, "dv": dv})
+                        ok &= agree
+    load_after = os.getloadavg()[0]
+    for problem in settings["problems"]:
+        print_table(points, problem)
+    print("\nC and rattle at the end of each chain run (max-norm; agree when |dq| <= "
+          f"{AGREE_Q:g} and |dv| <= {AGREE_V:g}):")
+    for a in agreements:
+        print(f"  N={a['n']}: |dq| {a['dq']:.2e}, |dv| {a['dv']:.2e}: "
+              f"{'agree' if a['agree'] else 'DISAGREE'}")
+    if not agreements:
+        print("  not compared (no finished pair)")
+    fitted = fits(points)
+    print(f"\nfitted exponent of time per step against N (least squares on log-log, "
+          f"N >= {FIT_FROM} where two points reach it):")
+    for f in fitted:
+        exponent = "n/a (fewer than two finished points)" if f["exponent"] is None else \
+            f"{f['exponent']:.2f} over N = {', '.join(map(str, f['n']))}"
+        print(f"  {f['problem']:<9} {f['family']:<14} {exponent}")
+    verdicts = bars(points, settings)
+    print("\nbars:")
+    for b in verdicts:
+        print(f"  {b['verdict']:<12} {b['bar']}: {b['value']}")
+    print(f"\n1-minute load average {load_before:.2f} before, {load_after:.2f} after")
+    data = {"settings": {**settings, "c_yardstick": note, "fit_from": FIT_FROM},
+            "machine": {"node": platform.node(), "cpus": os.cpu_count(),
+                        "processor": platform.processor() or platform.machine(),
+                        "python": platform.python_version()},
+            "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
+            "seconds": time.time() - started, "load": [load_before, load_after],
+            "baseline_rss": baseline, "points": [asdict(p) for p in points],
+            "agreement": agreements, "fits": fitted, "bars": verdicts}
+    for path in write(args.out, data, points):
+        print(f"wrote {path}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
