@@ -25,6 +25,13 @@ What runs
     message. ``rattle`` and C must end in the same state (:data:`AGREE_Q`,
     :data:`AGREE_V`).
 
+    Newton's tolerance on the chain is relative to the size of its constraints: ``g_k =
+    |x_k - x_{k-1}|^2 - l^2`` with ``l = 1/N``, so rattle's absolute default of 1e-16 would
+    be a relative 1e-16 N^2 (3e-8 at N = 16384), where two correct solvers that stop at
+    different iterates differ by 1e-8 in the velocities. Every chain point (C and the
+    fixed-step families) therefore takes ``newton_tol / N^2``, which iterates to round-off
+    at every N.
+
 What each number is
     time per step
         wall-clock (and CPU) time of ``solve()`` over the steps it took: the compiled time
@@ -218,7 +225,8 @@ def point_main(argv: list[str]) -> int:
         start = time.perf_counter()
         case = problems.make(f"{spec['problem']}:N={spec['n']}").with_t_end(
             spec["steps"] * spec["h"])
-        integ = integrators.make(spec["family"], h=spec["h"], rtol=spec["rtol"])
+        integ = integrators.make(spec["family"], h=spec["h"], rtol=spec["rtol"],
+                                 newton_tol=spec["newton_tol"])
         out["build_s"] = time.perf_counter() - start
         # Two samples (start and end): the default 2000 sampled states would be the
         # harness's memory (0.5 GB at N = 16384), not the method's.
@@ -298,10 +306,16 @@ def run_process(command: list[str], limit: float,
     return ending, stdout, stderr, peak
 
 
+def newton_tol(problem: str, n: int, settings: dict) -> float | None:
+    """Newton's tolerance at a point: relative to ``l^2 = 1/N^2`` on the chain (see above)."""
+    return settings["newton_tol"] / n ** 2 if problem == "chain" else None
+
+
 def run_family(problem: str, n: int, family: str, settings: dict, env: dict,
                state: Path | None = None) -> Point:
     """One point of a family in a fresh process."""
     spec = {"problem": problem, "n": n, "family": family, "h": settings["h"][problem],
+            "newton_tol": newton_tol(problem, n, settings),
             "steps": settings["steps"], "rtol": settings["rtol"], "repeats": settings["repeats"],
             "limit": settings["limit"], "memory_limit": settings["memory_limit"],
             "state": str(state) if state else None}
@@ -345,7 +359,7 @@ def compile_yardstick(workdir: Path) -> tuple[Path | None, str, bool]:
 
 def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
     """The C yardstick on chain:N, ``repeats`` runs; the point and its final ``(q, v)``."""
-    h, steps, tol = settings["h"]["chain"], settings["steps"], settings["newton_tol"]
+    h, steps, tol = settings["h"]["chain"], settings["steps"], newton_tol("chain", n, settings)
     point = Point("chain", n, C_NAME, "ok", linear_solver="tridiagonal (Thomas)")
     walls, cpus, state = [], [], None
     start = time.perf_counter()
