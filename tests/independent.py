@@ -1,4 +1,5 @@
-"""Independent re-derivation of RATTLE and Lobatto IIIA-IIIB for constrained Hamiltonians.
+"""Independent re-derivation of RATTLE, Lobatto IIIA-IIIB and generalized-alpha for constrained
+Hamiltonians.
 
 This module is a cross-check of the project's compiled integrators and deliberately shares
 nothing with them: plain numpy, no JAX, no automatic differentiation, hand-written
@@ -42,6 +43,10 @@ Solvers
 * RATTLE (one constraint, quadratic g): the position-step multiplier is the root nearest
   zero of the exact scalar quadratic g(a - lam d) = 0 (stable formula); the velocity-step
   multiplier is the solution of a scalar linear equation.
+* Generalized-alpha (index 3 and stabilised index 2): full Newton on the unscaled
+  (q_{n+1}, lam_{n+1}[, mu_{n+1}]) with the hand-built Jacobian, stopped when the
+  position increment is at round-off; coefficients from the roots of the amplification
+  matrix at infinite frequency.
 """
 
 from __future__ import annotations
@@ -55,7 +60,8 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["Q5", "lobatto_tableau", "lobatto_tableau_exact", "Problem", "PROBLEMS",
-           "rattle_step", "lobatto_step", "NewtonFailure", "integrate", "n_steps", "METHODS"]
+           "rattle_step", "lobatto_step", "NewtonFailure", "integrate", "n_steps", "METHODS",
+           "genalpha_coefficients", "genalpha_integrate"]
 
 
 # ----------------------------------------------------------------------------------------
