@@ -24,6 +24,8 @@ REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
     "baumgarte-tsit5": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "tsit5"}),
     "baumgarte-dopri5": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "dopri5"}),
     "baumgarte-dopri8": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "dopri8"}),
+    "genalpha": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "index3"}),
+    "genalpha-ggl": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "ggl"}),
 }
 
 

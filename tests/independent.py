@@ -1,4 +1,5 @@
-"""Independent re-derivation of RATTLE and Lobatto IIIA-IIIB for constrained Hamiltonians.
+"""Independent re-derivation of RATTLE, Lobatto IIIA-IIIB and generalized-alpha for constrained
+Hamiltonians.
 
 This module is a cross-check of the project's compiled integrators and deliberately shares
 nothing with them: plain numpy, no JAX, no automatic differentiation, hand-written
@@ -42,6 +43,10 @@ Solvers
 * RATTLE (one constraint, quadratic g): the position-step multiplier is the root nearest
   zero of the exact scalar quadratic g(a - lam d) = 0 (stable formula); the velocity-step
   multiplier is the solution of a scalar linear equation.
+* Generalized-alpha (index 3 and stabilised index 2): full Newton on the unscaled
+  (q_{n+1}, lam_{n+1}[, mu_{n+1}]) with the hand-built Jacobian, stopped when the
+  position increment is at round-off; coefficients from the roots of the amplification
+  matrix at infinite frequency.
 """
 
 from __future__ import annotations
@@ -55,7 +60,8 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["Q5", "lobatto_tableau", "lobatto_tableau_exact", "Problem", "PROBLEMS",
-           "rattle_step", "lobatto_step", "NewtonFailure", "integrate", "n_steps", "METHODS"]
+           "rattle_step", "lobatto_step", "NewtonFailure", "integrate", "n_steps", "METHODS",
+           "genalpha_coefficients", "genalpha_integrate"]
 
 
 # ----------------------------------------------------------------------------------------
@@ -586,3 +592,86 @@ def integrate(problem: str, method: str, h: float, t_end: float, *,
             max_dH = max(max_dH, abs(prob.energy(q, p) - H0))
     out = (q.astype(np.float64), p.astype(np.float64), float(max_g))
     return out + (float(max_dH),) if return_energy else out
+
+
+# ----------------------------------------------------------------------------------------
+# Generalized-alpha (Chung and Hulbert 1993; Arnold and Bruls 2007)
+# ----------------------------------------------------------------------------------------
+def genalpha_coefficients(rho: float):
+    """(alpha_m, alpha_f, gamma, beta) for the spectral radius ``rho`` at infinite frequency.
+
+    Obtained from the roots of the amplification matrix at infinite frequency rather than
+    from the closed formulas: ``alpha_f / (alpha_f - 1) = -rho`` fixes ``alpha_f``; the
+    double root ``(s - 2) / s`` of the position-velocity part, ``s = 1 - alpha_m +
+    alpha_f``, equals ``-rho`` for ``s = 2 / (1 + rho)``, which fixes ``alpha_m``;
+    ``gamma = s - 1/2`` gives second order and ``beta = s^2 / 4`` makes the root double.
+    """
+    alpha_f = rho / (1.0 + rho)
+    s = 2.0 / (1.0 + rho)
+    return 1.0 + alpha_f - s, alpha_f, s - 0.5, s * s / 4.0
+
+
+def genalpha_integrate(problem: str, h: float, t_end: float, rho: float, ggl: bool,
+                       record=None):
+    """Generalized-alpha on ``problem``: index 3, or stabilised index 2 when ``ggl``.
+
+    Unknowns of the Newton iteration: ``q_{n+1}`` and ``lam_{n+1}`` (and ``mu_{n+1}``),
+    unscaled, with the hand-built Jacobian; the acceleration-like variable ``a_{n+1}``
+    follows from the Newmark position formula solved for it::
+
+        a1   = (q1 - q0 - h v0 - h^2 (1/2 - beta) a0 - [G(q0)^T mu]) / (beta h^2)
+        v1   = v0 + h (1 - gamma) a0 + h gamma a1
+        acc1 = ((1 - alpha_m) a1 + alpha_m a0 - alpha_f acc0) / (1 - alpha_f)
+        0 = M acc1 + grad U(q1) + G(q1)^T lam,   0 = g(q1)   [, 0 = G(q1) v1]
+
+    Starts from ``a0 = acc0``, the acceleration of the index-1 system. Returns ``(q, v)``
+    at ``t_end``; ``record(n, q, v, lam)`` is called after every step if given.
+    """
+    prob = PROBLEMS[problem](np.float64)
+    am, af, gamma, beta = genalpha_coefficients(rho)
+    n, m = prob.n, prob.m
+    M, minv = np.diag(prob.mass), 1.0 / prob.mass
+    q, v = prob.q0.copy(), prob.p0 * minv
+    # Index-1 system: M a + G^T lam = -grad U, G a = -v^T Hess g v.
+    G = prob.G(q)
+    K = np.block([[M, G.T], [G, np.zeros((m, m))]])
+    rhs = np.concatenate([-prob.grad_U(q), -np.einsum("lab,a,b->l", prob.hess_g(q), v, v)])
+    sol = np.linalg.solve(K, rhs)
+    a, acc, lam = sol[:n], sol[:n].copy(), sol[n:]
+    c_q = (1 - am) / ((1 - af) * beta * h * h)   # d acc1 / d q1
+    for step in range(n_steps(h, t_end)):
+        G0 = prob.G(q)
+        base = q + h * v + h * h * (0.5 - beta) * a
+        x = np.concatenate([base + beta * h * h * a, lam] + ([np.zeros(m)] if ggl else []))
+        for _ in range(40):
+            q1, lam1 = x[:n], x[n:n + m]
+            shift = G0.T @ x[n + m:] if ggl else 0.0
+            a1 = (q1 - base - shift) / (beta * h * h)
+            v1 = v + h * (1 - gamma) * a + h * gamma * a1
+            acc1 = ((1 - am) * a1 + am * a - af * acc) / (1 - af)
+            G1, Hg = prob.G(q1), prob.hess_g(q1)
+            F = [M @ acc1 + prob.grad_U(q1) + G1.T @ lam1, prob.g(q1)]
+            J = [[c_q * M + prob.hess_U(q1) + np.einsum("l,lab->ab", lam1, Hg), G1.T],
+                 [G1, np.zeros((m, m))]]
+            if ggl:
+                F.append(G1 @ v1)
+                dv = gamma / (beta * h)   # d v1 / d q1
+                J[0].append(-c_q * M @ G0.T)
+                J[1].append(np.zeros((m, m)))
+                J.append([np.einsum("lab,b->la", Hg, v1) + dv * G1, np.zeros((m, m)),
+                          -dv * G1 @ G0.T])
+            dx = np.linalg.solve(np.block(J), -np.concatenate(F))
+            x = x + dx
+            if np.max(np.abs(dx[:n])) <= 4 * np.finfo(float).eps * (1 + np.max(np.abs(x[:n]))):
+                break
+        else:
+            raise NewtonFailure(f"generalized-alpha Newton did not converge at step {step + 1}")
+        q1, lam = x[:n], x[n:n + m]
+        shift = G0.T @ x[n + m:] if ggl else 0.0
+        a1 = (q1 - base - shift) / (beta * h * h)
+        v = v + h * (1 - gamma) * a + h * gamma * a1
+        acc = ((1 - am) * a1 + am * a - af * acc) / (1 - af)
+        q, a = q1, a1
+        if record is not None:
+            record(step + 1, q, v, lam)
+    return q, v

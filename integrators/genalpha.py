@@ -1,0 +1,225 @@
+"""The generalized-alpha method on the index-3 and the stabilised index-2 equations of motion."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from integrators.base import Grid, Integrator
+from integrators.loop import march
+from integrators.newton import newton
+from problems.case import Case
+from problems.mechanics import Mechanics
+
+#: ``formulation`` option -> whether the velocity constraint is enforced as well.
+FORMULATIONS = {"index3": False, "ggl": True}
+
+
+class Coefficients(NamedTuple):
+    """``alpha_m, alpha_f, gamma, beta`` of the method."""
+
+    alpha_m: float
+    alpha_f: float
+    gamma: float
+    beta: float
+
+    @classmethod
+    def from_rho_inf(cls, rho: float) -> "Coefficients":
+        """Chung and Hulbert's (1993) choice for the spectral radius ``rho`` at infinity.
+
+        Second order (``gamma = 1/2 - alpha_m + alpha_f``), unconditionally stable for
+        linear problems, and the high-frequency damping maximal for the low-frequency
+        damping it brings.
+        """
+        alpha_m = (2 * rho - 1) / (rho + 1)
+        alpha_f = rho / (rho + 1)
+        gamma = 0.5 - alpha_m + alpha_f
+        return cls(alpha_m, alpha_f, gamma, 0.25 * (gamma + 0.5) ** 2)
+
+
+class State(NamedTuple):
+    """The state the method carries from step to step.
+
+    ``a`` is the acceleration-like variable, ``acc`` the acceleration that satisfies the
+    equations of motion with the multipliers ``lam``.
+    """
+
+    q: jax.Array
+    v: jax.Array
+    a: jax.Array
+    acc: jax.Array
+    lam: jax.Array
+
+
+@dataclass(frozen=True)
+class GeneralizedAlpha(Integrator):
+    """Generalized-alpha (Chung and Hulbert 1993) for constrained systems (Arnold and Bruls 2007).
+
+    One step from ``(q_n, v_n, a_n, \\ddot q_n)`` to ``t_{n+1} = t_n + h``:
+
+    .. math::
+
+        q_{n+1} &= q_n + h v_n + h^2 (\\tfrac12 - \\beta) a_n + h^2 \\beta a_{n+1}
+                   \\; [+\\, G(q_n, t_n)^T \\mu_{n+1}], \\\\
+        v_{n+1} &= v_n + h (1 - \\gamma) a_n + h \\gamma a_{n+1}, \\\\
+        (1 - \\alpha_m) a_{n+1} + \\alpha_m a_n &= (1 - \\alpha_f) \\ddot q_{n+1}
+                   + \\alpha_f \\ddot q_n, \\\\
+        M(q_{n+1}) \\ddot q_{n+1} &= f(t_{n+1}, q_{n+1}, v_{n+1})
+                   - G(q_{n+1}, t_{n+1})^T \\lambda_{n+1}, \\\\
+        0 &= g(q_{n+1}, t_{n+1}) \\; [,\\quad 0 = G(q_{n+1}, t_{n+1}) v_{n+1}
+                   + g_t(q_{n+1}, t_{n+1})],
+
+    with ``f`` the full right-hand side (:meth:`Mechanics.force`) and ``a`` the
+    acceleration-like variable. ``formulation = "index3"`` omits the bracketed terms: the
+    index-3 form of Arnold and Bruls, which enforces ``g = 0`` at every step end but not
+    ``G v + g_t = 0``. ``formulation = "ggl"`` is the stabilised index-2 form of Arnold,
+    Bruls and Cardona (2015, Numer. Math. 129:149-179) in the manner of Gear, Gupta and
+    Leimkuhler: a second multiplier ``mu`` corrects the positions so that ``g = 0`` and
+    ``G v + g_t = 0`` both hold at every step end. ``mu`` is O(h^3) on a smooth solution,
+    so evaluating its direction at ``q_n`` (which keeps ``q_{n+1}`` explicit in the
+    unknowns) changes the step by O(h^4). The starting values ``a_0 = \\ddot q_0`` and
+    ``lambda_0`` solve the index-1 system at ``t_0``.
+
+    The parameters follow from the spectral radius at infinity ``rho_inf`` in [0, 1] as in
+    Chung and Hulbert (1993): ``alpha_m = (2 rho - 1)/(rho + 1)``,
+    ``alpha_f = rho/(rho + 1)``, ``gamma = 1/2 - alpha_m + alpha_f``,
+    ``beta = (gamma + 1/2)^2 / 4``. ``rho_inf = 1`` is the trapezoidal rule (Newmark's
+    average acceleration), without numerical damping; ``rho_inf < 1`` damps the
+    frequencies the step does not resolve and the resolved ones by O((omega h)^3) per
+    period, so that the energy of a conservative system decays. The method is not
+    symplectic. Order 2 in ``q`` and ``v``.
+
+    In the index-3 form the constraint directions behave as infinitely stiff modes: their
+    errors propagate with the double eigenvalue ``-rho_inf`` of the method at infinite
+    frequency (Arnold and Bruls 2007). For ``rho_inf = 1`` that is a Jordan block on the
+    unit circle, and on a curved constraint the errors grow until the run breaks down, as
+    Cardona and Geradin (1989, Comput. Struct. 33:801-820) found for the trapezoidal rule
+    on index-3 equations: the pendulum A01 at h = 0.01 fails at t = 84.7 s. Close to 1
+    the step must be small: on sps-receiver ``rho_inf = 0.9`` fails at h = 0.05 and 0.8
+    diverges at h = 0.1, while 0.5 stays stable up to h = 0.2. The index-2 form is stable
+    on the same runs for every ``rho_inf`` tried (0, 0.5, 0.9 and 1).
+
+    The position constraint also makes the index-3 accelerations and multipliers absorb
+    the O(h^3) position error of each step: they are off by O(h) in the first steps, with
+    alternating signs, until the ``-rho_inf`` mode has decayed (on the pendulum started
+    in motion, by 0.10, 0.19, 0.28 and 0.36 in the first four steps for a multiplier near
+    2.9, at h = 0.01 and ``rho_inf = 0.9``). The index-2 form determines the accelerations
+    through the velocity constraint instead and has no such transient (Arnold, Bruls and
+    Cardona 2015); what remains at its start is the O((alpha_m - alpha_f) h) error of
+    ``a_0 = \\ddot q_0``, 0.0035 in the same run.
+
+    The step equations are solved by Newton's method with the autodiff Jacobian for
+    ``x = beta h^2 a_{n+1}``, ``Lambda = beta h^2 lambda_{n+1}`` (and ``mu``), of which
+    ``q_{n+1}``, ``v_{n+1}`` and ``\\ddot q_{n+1}`` are affine functions; the equations of
+    motion are multiplied by ``beta h^2`` and the velocity constraint by
+    ``beta h / gamma``. These are the scalings of Bottasso, Bauchau and Cardona (2007, SIAM
+    J. Sci. Comput. 29:397-414): the iteration matrix tends to
+    ``[c M, G^T; G, 0]`` (index 3) or ``[c M, G^T, 0; G, 0, G G^T; G, 0, 0]`` (index 2),
+    ``c = (1 - alpha_m)/(1 - alpha_f)``, as ``h -> 0`` instead of growing like ``1/h^2``,
+    and its blocks are ``M``, ``G`` and the force Jacobians. With the increment-like
+    unknown ``x``, not ``q_{n+1}``, the velocities do not inherit the round-off of ``q``
+    magnified by ``1/h``.
+
+    Parameters
+    ----------
+    h : float
+        Step size (shrunk to divide the horizon evenly).
+    rho_inf : float
+        Spectral radius at infinity, in [0, 1]. The default 0.5 keeps the index-3 form
+        stable on every problem and step of the suites (see above); both forms share it
+        so that they differ in the formulation alone.
+    formulation : {"index3", "ggl"}
+        Index-3 form, or the stabilised index-2 form.
+    newton_tol : float
+        Max-norm tolerance of the scaled residual: it bounds ``|g|`` and, for ``ggl``,
+        ``beta h |G v + g_t| / gamma``. The default 1e-16 iterates to round-off (see
+        :func:`integrators.newton.newton`).
+    newton_max_iter : int
+        Newton iteration limit per step; exceeding it fails the run.
+    """
+
+    h: float = 0.01
+    rho_inf: float = 0.5
+    formulation: str = "index3"
+    newton_tol: float = 1e-16
+    newton_max_iter: int = 20
+
+    @property
+    def order(self) -> int:
+        return 2
+
+    def check(self) -> None:
+        super().check()
+        if not 0.0 <= self.rho_inf <= 1.0:
+            raise ValueError(f"GeneralizedAlpha: rho_inf = {self.rho_inf} must lie in [0, 1]")
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"GeneralizedAlpha: formulation = {self.formulation!r} must be one "
+                             f"of {', '.join(FORMULATIONS)}")
+
+    def equations(self, mech: Mechanics, state: State, t, h):
+        """The scaled step equations from ``state`` at ``t``.
+
+        Returns ``residual(z)``, the warm start ``z0`` (the previous acceleration-like
+        variable and multipliers, ``mu = 0``) and ``advance(z) -> State`` at ``t + h``.
+        """
+        c = Coefficients.from_rho_inf(self.rho_inf)
+        ggl = FORMULATIONS[self.formulation]
+        n, m = mech.n, mech.m
+        q, v, a, acc, lam = state
+        t1, bh2 = t + h, c.beta * h * h
+        q_hat = q + h * v + h * h * (0.5 - c.beta) * a
+        v_hat = v + h * (1 - c.gamma) * a
+        # beta h^2 times the part of acc_{n+1} that the previous step fixes.
+        acc_hat = bh2 * (c.alpha_m * a - c.alpha_f * acc)
+        G0T = mech.G(q, t).T if ggl else None
+
+        def kinematics(z):
+            x = z[:n]
+            q1 = q_hat + x + (G0T @ z[n + m:] if ggl else 0.0)
+            v1 = v_hat + (c.gamma / (c.beta * h)) * x
+            acc1 = ((1 - c.alpha_m) * x + acc_hat) / (1 - c.alpha_f)  # beta h^2 acc_{n+1}
+            return q1, v1, acc1
+
+        def residual(z):
+            q1, v1, acc1 = kinematics(z)
+            rows = [mech.mass(q1) @ acc1 - bh2 * mech.force(t1, q1, v1)
+                    + mech.G(q1, t1).T @ z[n:n + m],
+                    mech.g(q1, t1)]
+            if ggl:
+                rows.append((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1))
+            return jnp.concatenate(rows)
+
+        def advance(z):
+            q1, v1, acc1 = kinematics(z)
+            return State(q1, v1, z[:n] / bh2, acc1 / bh2, z[n:n + m] / bh2)
+
+        z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
+        return residual, z0, advance
+
+    def start(self, mech: Mechanics, q0, v0, t0) -> State:
+        """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
+        acc, lam = mech.accelerations(t0, q0, v0)
+        return State(q0, v0, acc, acc, lam)
+
+    def step(self, mech: Mechanics, state: State, t, h):
+        """One step: ``(state1, code, residual, counts)`` as :func:`integrators.loop.march` wants."""
+        residual, z0, advance = self.equations(mech, state, t, h)
+        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
+        it = sol.iterations
+        # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
+        counts = {"n_f_evals": it + 1, "n_jac_evals": it + int(FORMULATIONS[self.formulation]),
+                  "n_newton": it, "n_lin_solves": it}
+        return advance(sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
+
+    def prepare(self, case: Case, grid: Grid):
+        self.check()
+        mech = case.mech
+        # Compiled once; run eagerly, each autodiff operation would compile on its own.
+        state0 = jax.jit(lambda q0, v0, t0: self.start(mech, q0, v0, t0))(
+            jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
+        return march(mech, grid, self.h, state0,
+                     lambda state, t, h: self.step(mech, state, t, h),
+                     lambda state: (state.q, state.v), key=replace(self, h=None))
