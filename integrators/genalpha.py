@@ -139,6 +139,10 @@ class GeneralizedAlpha(Integrator):
         :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
+    linear_solver : {"auto", "dense", "banded", "superlu"}
+        Linear algebra of the index-3 form (:func:`problems.structure.schur`): large sparse
+        systems use simplified Newton through ``G M^{-1} G^T`` (:meth:`simplified`). The
+        ``ggl`` form always solves densely (its ``mu`` needs solves with ``G G^T``).
     """
 
     h: float = 0.01
@@ -146,6 +150,7 @@ class GeneralizedAlpha(Integrator):
     formulation: str = "index3"
     newton_tol: float = 1e-16
     newton_max_iter: int = 20
+    linear_solver: str = "auto"
 
     @property
     def order(self) -> int:
@@ -158,6 +163,9 @@ class GeneralizedAlpha(Integrator):
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"GeneralizedAlpha: formulation = {self.formulation!r} must be one "
                              f"of {', '.join(FORMULATIONS)}")
+        if FORMULATIONS[self.formulation] and self.linear_solver not in ("auto", "dense"):
+            raise ValueError(f"GeneralizedAlpha: linear_solver = {self.linear_solver!r} is not "
+                             "available for the ggl form (it solves densely)")
 
     def equations(self, mech: Mechanics, state: State, t, h):
         """The scaled step equations from ``state`` at ``t``.
@@ -174,19 +182,18 @@ class GeneralizedAlpha(Integrator):
         v_hat = v + h * (1 - c.gamma) * a
         # beta h^2 times the part of acc_{n+1} that the previous step fixes.
         acc_hat = bh2 * (c.alpha_m * a - c.alpha_f * acc)
-        G0T = mech.G(q, t).T if ggl else None
 
         def kinematics(z):
             x = z[:n]
-            q1 = q_hat + x + (G0T @ z[n + m:] if ggl else 0.0)
+            q1 = q_hat + x + (mech.GT(q, t, z[n + m:]) if ggl else 0.0)
             v1 = v_hat + (c.gamma / (c.beta * h)) * x
             acc1 = ((1 - c.alpha_m) * x + acc_hat) / (1 - c.alpha_f)  # beta h^2 acc_{n+1}
             return q1, v1, acc1
 
         def residual(z):
             q1, v1, acc1 = kinematics(z)
-            rows = [mech.mass(q1) @ acc1 - bh2 * mech.force(t1, q1, v1)
-                    + mech.G(q1, t1).T @ z[n:n + m],
+            rows = [mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
+                    + mech.GT(q1, t1, z[n:n + m]),
                     mech.g(q1, t1)]
             if ggl:
                 rows.append((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1))
@@ -199,27 +206,56 @@ class GeneralizedAlpha(Integrator):
         z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
         return residual, z0, advance
 
-    def start(self, mech: Mechanics, q0, v0, t0) -> State:
+    def simplified(self, mech: Mechanics, schur, state: State, t):
+        """Simplified Newton's correction of the index-3 equations on the structured path.
+
+        The iteration matrix frozen at ``q_n`` without the force Jacobian and the
+        derivative of ``G^T Lambda``, ``[c M, G_0^T; G_0, 0]`` with ``c = (1 - alpha_m) /
+        (1 - alpha_f)``, eliminated through ``S_0 = G_0 M^{-1} G_0^T``:
+        ``S_0 dLambda = c R_g - G_0 M^{-1} R_M`` and ``dx = -M^{-1} (R_M + G_0^T dLambda) / c``.
+        One factorisation of ``S_0`` per step.
+        """
+        coef = Coefficients.from_rho_inf(self.rho_inf)
+        cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
+        n, q = mech.n, state.q
+        S0 = schur.factor(q, t)
+
+        def linear(z, r):
+            MinvR = mech.solve_mass(q, r[:n])
+            dLam = schur.solve(S0, cm * r[n:] - mech.G_times(q, t, MinvR))
+            dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
+            return jnp.concatenate([dx, dLam]), jnp.max(jnp.abs(z))
+
+        return linear, S0.ok
+
+    def start(self, mech: Mechanics, schur, q0, v0, t0) -> State:
         """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
-        acc, lam = mech.accelerations(t0, q0, v0)
+        acc, lam = mech.accelerations(t0, q0, v0, schur=schur)
         return State(q0, v0, acc, acc, lam)
 
-    def step(self, mech: Mechanics, state: State, t, h):
+    def step(self, mech: Mechanics, schur, state: State, t, h):
         """One step: ``(state1, code, residual, counts)`` as :func:`integrators.loop.march` wants."""
         residual, z0, advance = self.equations(mech, state, t, h)
-        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
+        linear, ok = (None, True) if schur.name == "dense" else self.simplified(
+            mech, schur, state, t)
+        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
         it = sol.iterations
         # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
         counts = {"n_f_evals": it + 1, "n_jac_evals": it + int(FORMULATIONS[self.formulation]),
                   "n_newton": it, "n_lin_solves": it}
-        return advance(sol.z), jnp.where(sol.converged, 0, 1), sol.residual, counts
+        code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
+        return advance(sol.z), code, sol.residual, counts
 
     def prepare(self, case: Case, grid: Grid):
         self.check()
         mech = case.mech
+        # The ggl form's mu enters through G^T mu without M^{-1}: its elimination needs
+        # solves with G G^T, which only the dense path does.
+        schur = mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)
         # Compiled once; run eagerly, each autodiff operation would compile on its own.
-        state0 = jax.jit(lambda q0, v0, t0: self.start(mech, q0, v0, t0))(
+        state0 = jax.jit(lambda q0, v0, t0: self.start(mech, schur, q0, v0, t0))(
             jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
         return march(mech, grid, self.h, state0,
-                     lambda state, t, h: self.step(mech, state, t, h),
-                     lambda state: (state.q, state.v), key=replace(self, h=None))
+                     lambda state, t, h: self.step(mech, schur, state, t, h),
+                     lambda state: (state.q, state.v), key=replace(self, h=None),
+                     linear_solver=schur.name, pattern_nnz=schur.nnz)

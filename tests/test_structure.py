@@ -167,3 +167,13 @@ def test_auto_choice_follows_the_structure():
     ring = problems.make("sps-ring:N=64").mech.schur()
     assert ring.name == "banded" and len(ring.pattern.border) == 2
     assert ring.pattern.bandwidth <= 4
+
+
+def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path():
+    _, dense = solve("chain:N=16", "genalpha:linear_solver=dense", 0.2, h=1e-3)
+    for kind in STRUCTURED:
+        _, traj = solve("chain:N=16", f"genalpha:linear_solver={kind}", 0.2, h=1e-3)
+        assert traj.linear_solver == kind
+        assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-11
+        assert np.max(np.abs(traj.v_final - dense.v_final)) <= 1e-10
+        assert np.max(traj.windows["pos"]) <= 1e-13
