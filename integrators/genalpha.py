@@ -31,8 +31,8 @@ class Coefficients(NamedTuple):
         """Chung and Hulbert's (1993) choice for the spectral radius ``rho`` at infinity.
 
         Second order (``gamma = 1/2 - alpha_m + alpha_f``), unconditionally stable for
-        linear problems, and the high-frequency damping maximal for the low-frequency
-        damping it brings.
+        linear problems, and the least low-frequency damping for the high-frequency
+        damping that ``rho`` sets.
         """
         alpha_m = (2 * rho - 1) / (rho + 1)
         alpha_f = rho / (rho + 1)
@@ -234,15 +234,16 @@ class GeneralizedAlpha(Integrator):
         return State(q0, v0, acc, acc, lam)
 
     def step(self, mech: Mechanics, schur, state: State, t, h):
-        """One step: ``(state1, code, residual, counts)`` as :func:`integrators.loop.march` wants."""
+        """One step: ``(state1, code, residual, counts)`` (see :func:`integrators.loop.march`)."""
         residual, z0, advance = self.equations(mech, state, t, h)
         linear, ok = (None, True) if schur.name == "dense" else self.simplified(
             mech, schur, state, t)
         sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
         it = sol.iterations
         # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
-        counts = {"n_f_evals": it + 1, "n_jac_evals": it + int(FORMULATIONS[self.formulation]),
-                  "n_newton": it, "n_lin_solves": it}
+        extra_G = int(FORMULATIONS[self.formulation])
+        counts = {"n_f_evals": it + 1, "n_jac_evals": it + extra_G, "n_newton": it,
+                  "n_lin_solves": it}
         code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
         return advance(sol.z), code, sol.residual, counts
 
