@@ -74,7 +74,7 @@ COLUMNS = (
     "wall_s", "setup_s", "max_pos_residual", "max_vel_residual", "max_energy_error",
     "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
     "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
-    "options", "params", "run_key",
+    "options", "params", "run_key", "linear_solver", "pattern_nnz",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -254,7 +254,8 @@ def trajectory_columns(case, traj: Trajectory) -> dict:
         v_final=json.dumps([float(x) for x in traj.v_final]),
         invariant_errors=json.dumps(inv) if inv else "",
         sampling=traj.sampling, fail_step=traj.fail_step, fail_time=traj.fail_time,
-        callback_s=traj.extra.get("callback_s"),
+        callback_s=traj.extra.get("callback_s"), linear_solver=traj.linear_solver,
+        pattern_nnz=traj.pattern_nnz,
     )
     if traj.status == OK and (bad := _non_finite(traj)) is not None:
         what, when = bad

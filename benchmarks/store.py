@@ -56,7 +56,7 @@ SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha":
 #: Columns that hold text; every other column whose values are numbers (or missing) is
 #: read as float64, so a metric that no run measured is NaN, not None.
 TEXT_COLUMNS = {"problem", "integrator", "status", "message", "q_final", "v_final",
-                "invariant_errors", "sampling", "options", "params", "run_key",
+                "invariant_errors", "sampling", "options", "params", "run_key", "linear_solver",
                 *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
 
 

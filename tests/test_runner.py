@@ -158,3 +158,18 @@ def test_runs_of_one_problem_and_method_stay_on_one_worker():
     # ... then the first task no other worker is on, and only then the rest, in order.
     mine.affinity = "a-done"
     assert [pool._pick(mine, queue).id for _ in range(3)] == [2, 0, 3]
+
+
+def test_the_linear_solver_and_pattern_size_are_recorded(tmp_path):
+    import csv
+
+    records = run_specs([HEALTHY[0]], tmp_path, jobs=1, log=None)
+    row = records[0].row
+    # The trajectory names the linear algebra that ran; a run that does not is a defect.
+    assert isinstance(row["linear_solver"], str) and row["linear_solver"]
+    with open(tmp_path / "runs.csv") as fh:
+        written = next(csv.DictReader(fh))
+    assert written["linear_solver"] == row["linear_solver"]
+    assert written["pattern_nnz"] == ("" if row["pattern_nnz"] is None else str(row["pattern_nnz"]))
+    stored = load_runs(tmp_path / "driftbench.sqlite").iloc[0]
+    assert stored["linear_solver"] == row["linear_solver"]
