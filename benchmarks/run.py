@@ -9,22 +9,24 @@ Examples::
     python -m benchmarks.run --list
 
 Every run executes in a worker process, ``--jobs`` of them side by side (default: the
-usable cores); a run past its time limit (``--timeout``, else its suite group's or suite's
-``timeout``, else one hour; the limit covers building the case, set-up and the timed
-solves) is killed and recorded as ``timeout``, a worker that crashes is recorded as
-``error`` with its signal, and the suite goes on (:mod:`benchmarks.runner` says how wall
-times stay honest). ``--resume`` skips the runs the store already holds as finished (any
-status but ``error`` and ``timeout``) for the same problem, parameters, options, ``t_end``
-and code version. A suite's studies run after its runs.
+usable cores), or on a Dask cluster (``--cluster local:N`` starts one of N workers here,
+``--cluster tcp://HOST:PORT`` uses a running scheduler; see :mod:`benchmarks.cluster`); a
+run past its time limit (``--timeout``, else its suite group's or suite's ``timeout``,
+else one hour; the limit covers building the case, set-up and the timed solves) is killed
+and recorded as ``timeout``, a worker that crashes is recorded as ``error`` with its
+signal, and the suite goes on (:mod:`benchmarks.batch` says how wall times stay honest).
+``--resume`` skips the runs the store already holds as finished (any status but ``error``
+and ``timeout``) for the same problem, parameters, options, ``t_end`` and code version. A
+suite's studies run after its runs.
 
 Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten in suite
 order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as
 stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
-all under ``--out``. Bad input (unknown names, malformed suite files,
-out-of-range options, inconsistent initial values) is reported on one line before any run
-starts, with exit status 2. Runs that fail are data: they are recorded with their status
-and the command still exits 0. An interrupted invocation (Ctrl-C, ``SIGTERM``) stops its
-workers, keeps every finished run and exits with status 130.
+all under ``--out``. Bad input (unknown names, malformed suite files, out-of-range
+options, inconsistent initial values, an unreachable cluster) is reported on one line
+before any run starts, with exit status 2. Runs that fail are data: they are recorded with
+their status and the command still exits 0. An interrupted invocation (Ctrl-C,
+``SIGTERM``) stops its workers, keeps every finished run and exits with status 130.
 """
 
 from __future__ import annotations
@@ -37,8 +39,11 @@ from pathlib import Path
 
 import integrators
 import problems
-from benchmarks import suites, worker
-from benchmarks.runner import InputError, RunSpec, expand, one_line, run_specs
+from benchmarks import suites
+from benchmarks.batch import STUDIES, expand, run_specs
+from benchmarks.executors import load_plugins
+from benchmarks.records import InputError, RunSpec, one_line
+from reports import build as build_report
 
 #: Exit status of bad input and of an interrupted invocation.
 EXIT_INPUT, EXIT_INTERRUPTED = 2, 130
@@ -63,6 +68,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed repeats of each solve (median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run on Dask: local:N (N workers here) or tcp://HOST:PORT (a running "
+                        "scheduler); default: the local process pool")
     p.add_argument("--timeout", type=float,
                    help="time limit of each run in seconds, overriding the suite's (inf: none)")
     p.add_argument("--resume", action="store_true",
@@ -92,7 +100,7 @@ def listing() -> str:
             description = f"(cannot be loaded: {exc})" if isinstance(exc, InputError) else ""
         lines.append(f"  {name}: {description}")
     lines.append("studies:")
-    lines.extend(f"  {name}: {target}" for name, target in suites.STUDIES.items())
+    lines.extend(f"  {name}: {target}" for name, target in STUDIES.items())
     return "\n".join(lines)
 
 
@@ -113,8 +121,9 @@ def check_arguments(args) -> None:
                 raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
 
 
-def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None]:
-    """The suite name, its runs, the repeat count, its studies and the default time limit."""
+def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None, str | None]:
+    """The suite name, its runs, the repeat count, its studies, the default time limit and
+    the Dask cluster (``None``: the local pool)."""
     check_arguments(args)
     if args.problems or args.integrators:
         if args.suite:
@@ -126,15 +135,17 @@ def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None]:
                           args.t_end)
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
-        return "ad-hoc", runs, args.repeats or 3, (), args.timeout
+        return "ad-hoc", runs, args.repeats or 3, (), args.timeout, args.cluster
     suite = suites.load(args.suite or "default")
     runs = suite.runs
     if args.t_end is not None:
         runs = [dataclasses.replace(r, t_end=args.t_end) for r in runs]
     if args.timeout is not None:
         runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
+    # The command line's engine wins over the suite's.
+    cluster = args.cluster or (suite.cluster if args.jobs is None else None)
     return (suite.name, runs, args.repeats or suite.repeats or 3, suite.studies,
-            args.timeout if args.timeout is not None else suite.timeout)
+            args.timeout if args.timeout is not None else suite.timeout, cluster)
 
 
 class Interrupted(Exception):
@@ -148,15 +159,16 @@ def _interrupt(signum, frame):
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.list:
-        worker.load_plugins()
+        load_plugins()
         print(listing())
         return 0
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        worker.load_plugins()
-        name, runs, repeats, studies, timeout = plan(args)
-        records = run_specs(runs, args.out, args.jobs, suite=name, repeats=repeats,
-                            timeout=timeout, resume=args.resume, studies=studies)
+        load_plugins()
+        name, runs, repeats, studies, timeout, cluster = plan(args)
+        records = run_specs(runs, args.out, args.jobs, cluster=cluster, suite=name,
+                            repeats=repeats, timeout=timeout, resume=args.resume,
+                            studies=studies)
     except InputError as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
@@ -173,7 +185,6 @@ def main(argv=None) -> int:
     summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
     if not args.no_report:
-        from reports import build as build_report
         for path in build_report(args.out / "driftbench.sqlite", args.out):
             print(f"wrote {path}")
     return 0

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.runner import CODE_VERSION_ENV
-from benchmarks.worker import PLUGIN_ENV
+from benchmarks.executors import PLUGIN_ENV
+from benchmarks.records import CODE_VERSION_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
