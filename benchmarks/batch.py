@@ -34,6 +34,7 @@ back from the store as stored (their latest finished row), and the runs of this 
 from __future__ import annotations
 
 import csv
+import hashlib
 import itertools
 import math
 import os
@@ -41,6 +42,7 @@ import sys
 from pathlib import Path
 from typing import Iterable, TextIO
 
+import cloudpickle
 import numpy as np
 import pandas as pd
 from tqdm import tqdm
@@ -48,8 +50,9 @@ from tqdm import tqdm
 import integrators
 import problems
 from benchmarks.cluster import Cluster
+from benchmarks.audit import AuditError, audit, explain
 from benchmarks.execute import build, known
-from benchmarks.executors import Executor, Outcome, Task, load_plugins
+from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.pool import Pool, usable_cpus
 from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunSpec,
                                 blank_row, one_line, provenance)
@@ -117,6 +120,7 @@ def validate(specs: Iterable[RunSpec], version: str,
         is wrong, on one line.
     """
     built: dict[RunSpec, tuple] = {}
+    audited: set[str] = set()
     out = []
     for spec in specs:
         where = f"{spec.origin}: " if spec.origin else ""
@@ -125,12 +129,17 @@ def validate(specs: Iterable[RunSpec], version: str,
                 check_timeout(spec.timeout, spec.label())
             if spec not in built:
                 built[spec] = build(spec)
+            name = problems.split_spec(spec.problem)[0]
+            # The library's own problems are verified by its tests; user code is checked
+            # here, once per problem spec, before it can spoil every run.
+            if spec.problem not in audited and problems.origin(name) != "built-in":
+                audit(built[spec][0])
+                audited.add(spec.problem)
             out.append(known(spec, *built[spec], grid_options, version))
-        except (ValueError, InputError) as exc:
+        except (InputError, AuditError, problems.SpecError) as exc:
             raise InputError(one_line(f"{where}{exc}")) from None
-        except Exception as exc:  # a defect met while building: still reported on one line
-            raise InputError(one_line(f"{where}{spec.label()}: {type(exc).__name__}: {exc}")) \
-                from None
+        except Exception as exc:  # user code or a defect met while building: one line
+            raise InputError(one_line(f"{where}{spec.label()}: {explain(exc)}")) from None
     return out
 
 
@@ -241,11 +250,51 @@ def engine(jobs: int | None, cluster: str | None) -> Executor:
     return Pool(jobs)
 
 
+def user_code(loads: Iterable[str] = (), cases=()) -> tuple[tuple[str, ...], dict[str, bytes]]:
+    """Load user files and modules here and make ``cases`` (:class:`~problems.Case`
+    objects) known by name; return what a worker needs to do the same.
+
+    Raises
+    ------
+    InputError
+        A source that cannot be loaded (its file:line and what went wrong), or a case
+        whose name a registered problem has.
+    """
+    try:
+        loaded = tuple(problems.load(source) for source in loads)
+    except problems.LoadError as exc:
+        raise InputError(one_line(exc)) from None
+    blobs = {}
+    for case in cases:
+        if problems.ORIGINS.get(case.name, "Python API") != "Python API":
+            raise InputError(f"case {case.name!r}: a problem of that name is registered "
+                             f"({problems.ORIGINS[case.name]}); give the case another name")
+        blobs[case.name] = cloudpickle.dumps(case)
+    use(loaded, blobs)
+    return loaded, blobs
+
+
+def _digest(loaded: tuple[str, ...], blobs: dict[str, bytes]) -> str:
+    """A hash of the user code a batch runs (file contents, pickled cases), for run keys:
+    the code version covers only the library."""
+    if not loaded and not blobs:
+        return ""
+    h = hashlib.sha256()
+    for source in loaded:
+        module = sys.modules.get(source) if not source.endswith(".py") else None
+        path = Path(source if module is None else getattr(module, "__file__", "") or "")
+        h.update(source.encode() + (path.read_bytes() if path.is_file() else b""))
+    for name, blob in sorted(blobs.items()):
+        h.update(name.encode() + blob)
+    return f"+user:{h.hexdigest()[:12]}"
+
+
 def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
               cluster: str | None = None, suite: str = "ad-hoc", repeats: int = 3,
               timeout: float | None = None, resume: bool = False,
               studies: Iterable[str] = (), grid_options: dict | None = None,
-              log: TextIO | None = sys.stderr, progress: bool | None = None) -> list[Record]:
+              load: Iterable[str] = (), cases=(), log: TextIO | None = sys.stderr,
+              progress: bool | None = None) -> list[Record]:
     """Run ``specs`` on an engine, store every run and write ``out/runs.csv``.
 
     Parameters
@@ -275,6 +324,12 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         message.
     grid_options : dict, optional
         ``Grid`` options (windows, samples) for every run.
+    load : iterable of str
+        User files and modules that register problems and integrators
+        (:func:`problems.load`), loaded here and by every worker.
+    cases : iterable of Case
+        :class:`~problems.Case` objects run under their names (the Python API's), sent to
+        the workers pickled by value.
     log : text stream, optional
         Where the progress bar (on a terminal), one line per run and the engine's notes
         (the Dask dashboard's address) go.
@@ -292,6 +347,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         Bad input, found before any run starts (nothing is written then).
     """
     load_plugins()
+    loaded, blobs = user_code(load, cases)
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise InputError(f"repeats = {repeats!r} must be a whole number of at least 1")
     timeout = DEFAULT_TIMEOUT if timeout is None else timeout
@@ -306,7 +362,8 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         if said and log is not None:
             print(said, file=log, flush=True)
         version = provenance()["code_version"]
-        fixed = validate(specs, version, grid_options)
+        keyed = version + _digest(loaded, blobs)
+        fixed = validate(specs, keyed, grid_options)
         out = Path(out)
         try:
             out.mkdir(parents=True, exist_ok=True)
@@ -314,15 +371,17 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         except (OSError, StoreError) as exc:
             raise InputError(one_line(f"cannot write results to {out}: {exc}")) from None
         with store:
-            return _run_batch(executor, store, specs, fixed, version, out, suite=suite,
-                              repeats=repeats, timeout=timeout, resume=resume,
+            return _run_batch(executor, store, specs, fixed, (keyed, loaded, blobs), out,
+                              suite=suite, repeats=repeats, timeout=timeout, resume=resume,
                               targets=targets, grid_options=grid_options, log=log,
                               progress=progress)
 
 
-def _run_batch(executor: Executor, store: Store, specs, fixed, version, out, *, suite,
+def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, suite,
                repeats, timeout, resume, targets, grid_options, log, progress) -> list[Record]:
-    """The body of :func:`run_specs` once the input is valid and the store is open."""
+    """The body of :func:`run_specs` once the input is valid and the store is open;
+    ``code`` is the run keys' version, the loaded sources and the pickled cases."""
+    keyed, loaded, blobs = code
     records: list[Record | None] = [None] * len(specs)
     finished = store.finished_keys() if resume else set()
     skipped = [i for i, f in enumerate(fixed) if f["run_key"] in finished]
@@ -336,8 +395,9 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, version, out, *, 
     for i, spec in enumerate(specs):
         if records[i] is None:
             limit = _limit(spec.timeout or timeout)
-            tasks.append(Task(i, "run", (spec, version, repeats, limit, grid_options), limit,
-                              spec.label(), (spec.problem, spec.integrator)))
+            payload = (spec, keyed, repeats, limit, grid_options, loaded, blobs)
+            tasks.append(Task(i, "run", payload, limit, spec.label(),
+                              (spec.problem, spec.integrator)))
     session = store.begin(suite, timing_note=executor.note(repeats))
     bar = Progress(len(tasks) + len(targets), log, progress)
     if skipped:

@@ -5,7 +5,8 @@ options that ran, what the case and the method declare (``t0``, energy scale, no
 order, sensitivity), the work counters, the metrics (:mod:`benchmarks.metrics`), the drift
 classes of ``|g|`` and ``|H - H0|`` (:mod:`benchmarks.drift`), the linear solver and the
 sampling. A run that fails numerically is ``failed`` with the method's message, a run that
-raises is ``error`` with the exception, and neither raises here.
+raises is ``error`` with the exception (and the ``file:line`` in user code where it
+arose), and neither raises here.
 
 :func:`known` gives the columns fixed before anything runs, and the run key; the batch
 computes them while validating, so that a run killed at its time limit is recorded with
@@ -19,13 +20,13 @@ import json
 import math
 import statistics
 import time
-import traceback
 from typing import Callable
 
 import numpy as np
 
 import integrators
 import problems
+from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
 from benchmarks.records import Record, RunSpec, blank_row, provenance, run_key
@@ -37,6 +38,11 @@ def _case(problem: str):
     # Cases are immutable: the runs of a worker share them, and with them the compiled
     # functions keyed on their Mechanics (a step-size or tolerance sweep compiles once).
     return problems.make(problem)
+
+
+def forget_cases() -> None:
+    """Drop the cases this process keeps (a problem's definition was replaced)."""
+    _case.cache_clear()
 
 
 def build(spec: RunSpec):
@@ -66,12 +72,11 @@ def known(spec: RunSpec, case, integ, grid_options: dict | None, version: str) -
                 run_key=run_key(resolved, version))
 
 
-def _detail(exc: Exception) -> str:
-    return traceback.format_exception_only(type(exc), exc)[-1].strip()
 
 
-def execute(spec: RunSpec, version: str | None = None, repeats: int = 3, repeat_budget: float = 10.0,
-            grid_options: dict | None = None, deadline: float | None = None,
+def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
+            repeat_budget: float = 10.0, grid_options: dict | None = None,
+            deadline: float | None = None,
             on_phase: Callable[[str], None] | None = None) -> Record:
     """Run ``spec``: set-up once, solve up to ``repeats`` times, measure the last solve.
 
@@ -104,7 +109,7 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3, repeat_
         version = version or provenance()["code_version"]
         row = blank_row(spec, **known(spec, case, integ, grid_options, version))
     except Exception as exc:  # bad input or a defect: recorded, never fatal to the suite
-        return Record(blank_row(spec, status=ERROR, message=_detail(exc)))
+        return Record(blank_row(spec, status=ERROR, message=explain(exc)))
     try:
         grid = Grid(case.t0, case.t_end, **(grid_options or {}))
         phase("set-up")
@@ -128,7 +133,7 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3, repeat_
                    wall_max_s=max(times), repeats=len(times))
         row.update(trajectory_columns(case, traj))
     except Exception as exc:  # a defect in the method or the user's functions
-        return Record({**row, "status": ERROR, "message": _detail(exc)})
+        return Record({**row, "status": ERROR, "message": explain(exc)})
     return Record(row, traj.windows, traj.samples)
 
 

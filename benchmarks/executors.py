@@ -15,6 +15,7 @@ integrators that hang, crash, raise or return NaN.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.util
 import os
@@ -27,7 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Protocol
 
-from benchmarks.execute import execute
+import cloudpickle
+
+import problems
+from benchmarks.execute import execute, forget_cases
 
 #: Environment variable naming test-only plugin files (``os.pathsep``-separated).
 PLUGIN_ENV = "DRIFTBENCH_TEST_PLUGINS"
@@ -120,8 +124,30 @@ def load_plugins() -> list[str]:
     return loaded
 
 
+#: Digest of each case provided by the Python API to this process, by problem name.
+_provided: dict[str, str] = {}
+
+
+def use(loads: Iterable[str] = (), cases: dict[str, bytes] | None = None) -> None:
+    """Make user problems known in this process: load files and modules
+    (:func:`problems.load`, once each) and register :class:`~problems.Case` objects given
+    to the Python API (pickled by value, so a notebook's functions travel with them)
+    under their names, replacing an earlier case of the same name."""
+    for source in loads:
+        problems.load(source)
+    for name, blob in (cases or {}).items():
+        digest = hashlib.sha256(blob).hexdigest()
+        if _provided.get(name) != digest:
+            case = cloudpickle.loads(blob)
+            problems.REGISTRY.pop(name, None)
+            problems.register(name, origin="Python API")(lambda case=case: case)
+            _provided[name] = digest
+            forget_cases()
+
+
 def _run_task(payload, phase: Callable[[str], None]):
-    spec, version, repeats, time_limit, grid_options = payload
+    spec, version, repeats, time_limit, grid_options, loads, cases = payload
+    use(loads, cases)
     deadline = time.monotonic() + time_limit if time_limit is not None else None
     return execute(spec, version, repeats=repeats, grid_options=grid_options,
                    deadline=deadline, on_phase=phase)

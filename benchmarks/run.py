@@ -3,6 +3,7 @@
 Examples::
 
     python -m benchmarks.run --suite quick
+    python -m benchmarks.run --load my_mechanism.py --problems my-mechanism --integrators rattle
     python -m benchmarks.run --problems sps-receiver pendulum --integrators rattle \\
         lobatto3ab3 --h 0.1 0.05 --t-end 100 --out results/
     python -m benchmarks.run --suite default --jobs 2 --timeout 600 --resume
@@ -76,15 +77,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="skip runs the store already holds as finished (same run key)")
     p.add_argument("--no-report", action="store_true", help="do not build the report")
+    p.add_argument("--load", action="append", default=[], metavar="PATH_OR_MODULE",
+                   help="import a Python file or module that registers problems or "
+                        "integrators, before anything else (repeatable; trusted code)")
     p.add_argument("--list", action="store_true", help="list problems, integrators and suites")
     return p
 
 
 def listing() -> str:
-    lines = ["problems (name: parameters with defaults):"]
+    lines = ["problems (name: parameters with defaults [where it comes from]):"]
     for name in problems.names():
         params = ", ".join(f"{k}={v}" for k, v in problems.parameters(name).items())
-        lines.append(f"  {name}: {params}")
+        lines.append(f"  {name}: {params} [{problems.origin(name)}]")
     lines.append("integrators (key: options with defaults):")
     for key in integrators.keys():
         try:
@@ -121,10 +125,15 @@ def check_arguments(args) -> None:
                 raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
 
 
-def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None, str | None]:
-    """The suite name, its runs, the repeat count, its studies, the default time limit and
-    the Dask cluster (``None``: the local pool)."""
+def plan(args) -> tuple[list[RunSpec], dict]:
+    """The runs and the keyword arguments of :func:`benchmarks.batch.run_specs` (suite
+    name, repeats, studies, default time limit, Dask cluster, user code to load); loads
+    ``--load`` first, so that what it registers can be named."""
     check_arguments(args)
+    try:
+        loads = [problems.load(source) for source in args.load]
+    except problems.LoadError as exc:
+        raise InputError(one_line(exc)) from None
     if args.problems or args.integrators:
         if args.suite:
             raise InputError("give either --suite or --problems/--integrators, not both")
@@ -135,7 +144,8 @@ def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None, 
                           args.t_end)
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
-        return "ad-hoc", runs, args.repeats or 3, (), args.timeout, args.cluster
+        return runs, dict(suite="ad-hoc", repeats=args.repeats or 3, timeout=args.timeout,
+                          cluster=args.cluster, load=loads)
     suite = suites.load(args.suite or "default")
     runs = suite.runs
     if args.t_end is not None:
@@ -144,8 +154,9 @@ def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None, 
         runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
     # The command line's engine wins over the suite's.
     cluster = args.cluster or (suite.cluster if args.jobs is None else None)
-    return (suite.name, runs, args.repeats or suite.repeats or 3, suite.studies,
-            args.timeout if args.timeout is not None else suite.timeout, cluster)
+    return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,
+                      studies=suite.studies, cluster=cluster, load=[*loads, *suite.load],
+                      timeout=args.timeout if args.timeout is not None else suite.timeout)
 
 
 class Interrupted(Exception):
@@ -159,16 +170,20 @@ def _interrupt(signum, frame):
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.list:
-        load_plugins()
+        try:
+            load_plugins()
+            for source in args.load:
+                problems.load(source)
+        except problems.LoadError as exc:
+            print(f"error: {one_line(exc)}", file=sys.stderr)
+            return EXIT_INPUT
         print(listing())
         return 0
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         load_plugins()
-        name, runs, repeats, studies, timeout, cluster = plan(args)
-        records = run_specs(runs, args.out, args.jobs, cluster=cluster, suite=name,
-                            repeats=repeats, timeout=timeout, resume=args.resume,
-                            studies=studies)
+        runs, options = plan(args)
+        records = run_specs(runs, args.out, args.jobs, resume=args.resume, **options)
     except InputError as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT

@@ -24,6 +24,10 @@ function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in
 :data:`benchmarks.batch.STUDIES` (never taken from the file), run after the suite's runs.
 A suite may hold only studies.
 
+``load = ["models/arm.py", "mypackage.problems"]`` imports user code that registers
+problems and integrators (files relative to the suite file, or module names) before the
+groups are read; it is the only code a suite file can run, and it is trusted as it is.
+
 ``cluster = "local:4"`` or ``cluster = "tcp://HOST:PORT"`` runs the suite on a Dask cluster
 (:mod:`benchmarks.cluster`) unless the command line names an engine (``--jobs`` or
 ``--cluster``).
@@ -53,7 +57,7 @@ NUMBER, STRINGS, NUMBERS = "a number", "a list of strings", "a list of numbers"
 #: Allowed keys and what they hold: top level, and per group.
 TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
             "repeats": "a whole number", "timeout": NUMBER, "budget": NUMBER,
-            "studies": STRINGS, "cluster": "a string"}
+            "studies": STRINGS, "cluster": "a string", "load": STRINGS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
               "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
 
@@ -94,7 +98,7 @@ class Suite:
     """A loaded suite file: its runs, their defaults, its studies and the engine it names.
 
     ``repeats``, ``timeout``, ``budget`` and ``cluster`` are ``None`` where the file sets
-    none.
+    none; ``load`` holds the user code it loaded (resolved paths and module names).
     """
 
     name: str
@@ -105,6 +109,7 @@ class Suite:
     studies: tuple[str, ...] = field(default=())
     budget: float | None = None
     cluster: str | None = None
+    load: tuple[str, ...] = field(default=())
 
 
 def names() -> list[str]:
@@ -183,6 +188,12 @@ def load(name: str) -> Suite:
         if study not in STUDIES:
             fail(_line_of(text, "studies"), f"unknown study {study!r}{suggest(study, STUDIES)}; "
                                             f"known: {', '.join(sorted(STUDIES))}")
+    loaded = []
+    for source in data.get("load", []):
+        try:
+            loaded.append(problems.load(source, base=path.parent))
+        except problems.LoadError as exc:
+            fail(_line_of(text, "load"), f"load: {exc}")
     cluster = data.get("cluster")
     if cluster is not None:
         try:
@@ -229,4 +240,4 @@ def load(name: str) -> Suite:
                 for r in runs]
     return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
                  timeout, studies, float(data["budget"]) if "budget" in data else None,
-                 cluster)
+                 cluster, tuple(loaded))
