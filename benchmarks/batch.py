@@ -55,7 +55,7 @@ from benchmarks.execute import build, known
 from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.pool import Pool, usable_cpus
 from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunSpec,
-                                blank_row, one_line, provenance)
+                                blank_row, identity, one_line, provenance)
 from benchmarks.store import STORE_NAME, UNFINISHED, Store, StoreError, load_runs
 from integrators.base import ERROR, TIMEOUT
 from problems import suggest
@@ -396,7 +396,8 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
         if records[i] is None:
             limit = _limit(spec.timeout or timeout)
             payload = (spec, keyed, repeats, limit, grid_options, loaded, blobs)
-            tasks.append(Task(i, "run", payload, limit, spec.label(),
+            # Labelled by the identity the store will hold (settings and horizon resolved).
+            tasks.append(Task(i, "run", payload, limit, identity(blank_row(spec, **fixed[i])),
                               (spec.problem, spec.integrator)))
     session = store.begin(suite, timing_note=executor.note(repeats))
     bar = Progress(len(tasks) + len(targets), log, progress)

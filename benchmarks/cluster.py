@@ -57,6 +57,9 @@ POLL = 0.25
 # The worker side: one pool process per Dask worker
 # ---------------------------------------------------------------------------------------
 
+_claims: list = []  # the open lock files of this process's claimed cores
+
+
 def claim_core() -> tuple[int, bool]:
     """A core for this process, and whether it is its own.
 
@@ -75,9 +78,6 @@ def claim_core() -> tuple[int, bool]:
         _claims.append(handle)
         return cpu, True
     return cpus[os.getpid() % len(cpus)], False
-
-
-_claims: list = []  # the open lock files of this process's claimed cores
 
 
 class _Host:
