@@ -7,6 +7,10 @@ local process pool (:mod:`benchmarks.pool`) and a Dask cluster (:mod:`benchmarks
 Whichever runs it, a task is carried out by :func:`perform` in a worker process of the
 local pool's kind, so a run is isolated, timed and measured the same way everywhere.
 
+User code travels with each run: :func:`use` loads, in the worker, the files and modules
+the batch loaded (``--load``, a suite's ``load``) and registers the Python API's
+:class:`~problems.Case` objects, pickled by value.
+
 Test-only plugins: the environment variable :data:`PLUGIN_ENV` may name Python files
 (separated by ``os.pathsep``) that the parent and every worker load before any task,
 under the module name ``driftbench_plugin_<stem>``; the test suite uses it to register

@@ -159,8 +159,12 @@ def plan(args) -> tuple[list[RunSpec], dict]:
                       timeout=args.timeout if args.timeout is not None else suite.timeout)
 
 
-class Interrupted(Exception):
-    """SIGINT or SIGTERM: stop the workers, keep what finished."""
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM: stop the workers, keep what finished.
+
+    A ``BaseException``, as ``KeyboardInterrupt`` is, so that no ``except Exception`` on
+    the way (the Dask client has some) swallows it.
+    """
 
 
 def _interrupt(signum, frame):
