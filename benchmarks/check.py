@@ -297,7 +297,8 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="driftbench-check-") as tmp:
             out = args.out or Path(tmp)
             records = run_specs(suite.runs, out, args.jobs, suite=f"check:{suite.name}",
-                                repeats=1, timeout=args.timeout or suite.timeout)
+                                repeats=1, timeout=args.timeout or suite.timeout,
+                                load=suite.load)
     except InputError as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT

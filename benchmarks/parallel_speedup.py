@@ -48,7 +48,8 @@ def measure(suite_name: str, engines: list[tuple[int | None, str | None]], out: 
         start = time.perf_counter()
         records = run_specs(suite.runs, out / name.replace(" ", "-").replace(":", "-")
                             .replace("/", ""), jobs, cluster=cluster, suite=suite.name,
-                            repeats=repeats, timeout=suite.timeout, log=None)
+                            repeats=repeats, timeout=suite.timeout, load=suite.load,
+                            log=None)
         wall = time.perf_counter() - start
         accuracy = [[r.row[c] for c in ACCURACY_COLUMNS] for r in records]
         reference = accuracy if reference is None else reference

@@ -213,3 +213,17 @@ def test_user_code_is_loaded_by_the_module_name_too(tmp_path, monkeypatch):
     assert problems.origin("module-crank") == "module my_models"
     with pytest.raises(problems.LoadError, match="no such Python file or importable module"):
         problems.load("no_such_models_here")
+
+
+def test_the_drift_gate_takes_a_suite_that_loads_user_code(tmp_path, capsys):
+    from benchmarks import check
+
+    suite, baseline = tmp_path / "mine.toml", tmp_path / "baseline.json"
+    suite.write_text(f'load = ["{SLIDER}"]\n[[group]]\nproblems = ["slider-crank"]\n'
+                     'integrators = ["rattle"]\nh = [0.05]\nt_end = 0.5\n')
+    args = ["--suite", str(suite), "--baseline", str(baseline), "--jobs", "1"]
+    assert check.main([*args, "--update"]) == 0
+    entry = json.loads(baseline.read_text())["runs"]["slider-crank / rattle / h=0.05 / t_end=0.5"]
+    assert entry["status"] == "ok" and entry["metrics"]["final_state_error"] is not None
+    assert check.main(args) == 0  # deterministic: nothing moves
+    assert "drift gate passed" in capsys.readouterr().out
