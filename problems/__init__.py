@@ -32,11 +32,11 @@ from importlib import metadata
 from pathlib import Path
 from typing import Callable
 
-from problems.case import Case, InconsistentInitialValues, Reference, make_case
-from problems.mechanics import Mechanics, System
+from problems.case import Case, InconsistentInitialValues, Reference, make_case  # noqa: F401
+from problems.mechanics import Mechanics, System  # noqa: F401
 
-__all__ = ["System", "make_case", "Case", "Reference", "register", "load",
-           "InconsistentInitialValues", "Mechanics"]
+#: The public problem-authoring API.
+__all__ = ["System", "make_case", "Reference", "Case", "register", "load"]
 
 REGISTRY: dict[str, Callable[..., Case]] = {}
 
@@ -181,7 +181,7 @@ def _load() -> None:
     points)."""
     for module in _MODULES:
         importlib.import_module(module)
-    if ENTRY_POINTS not in _loaded:
+    if ENTRY_POINTS not in _loaded:  # installed packages are looked up once
         _loaded[ENTRY_POINTS] = None
         for entry in metadata.entry_points(group=ENTRY_POINTS):
             package = entry.dist.name if entry.dist is not None else entry.value
