@@ -5,14 +5,17 @@
     python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json
     python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json --update
 
-Each run of the suite is matched to the baseline's run of the same identity (problem,
-integrator, setting, horizon). Every metric is compared in its own direction with its own
-:class:`Tolerance`: lower is better for constraint residuals, energy and invariant errors
-and final errors; higher is better for ``scd`` (significant correct digits). A metric
-regresses when it is worse than the baseline by more than its relative factor *and* lies
-above its absolute floor (values at or below the floor are round-off, which may differ
-between machines). A run that finished in the baseline and now does not (``failed``,
-``error``, ``timeout``) is a regression, as is a failed run that now fails earlier.
+Each run of the suite is matched to the baseline's run of the same identity
+(:func:`benchmarks.records.identity`: problem, integrator, setting, horizon). Every metric
+is compared in its own direction with its own :class:`Tolerance`: lower is better for
+constraint residuals, energy and invariant errors and final errors; higher is better for
+``scd`` (significant correct digits). A metric regresses when it is worse than the
+baseline by more than its relative factor *and* lies above its absolute floor (values at
+or below the floor are round-off, which may differ between machines). The drift classes
+of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`) regress when
+they grow faster than before (bounded, linear, quadratic, superquadratic, exponential). A
+run that finished in the baseline and now does not (``failed``, ``error``, ``timeout``)
+is a regression, as is a failed run that now fails earlier.
 
 Runs of sensitive (chaotic) problems, ``System.sensitive``, are compared and reported but
 never fail the gate: their final states depend on round-off. Runs missing from either side
@@ -33,8 +36,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.runner import InputError, one_line, run_specs
-from benchmarks.store import provenance
+from benchmarks import suites
+from benchmarks.batch import run_specs
+from benchmarks.drift import SEVERITY, kind_of
+from benchmarks.executors import load_plugins
+from benchmarks.records import InputError, identity, one_line, provenance
 
 EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
 BASELINE_FORMAT = 1
@@ -75,16 +81,8 @@ TOLERANCES: dict[str, Tolerance] = {
 INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
 
 
-def run_id(row: dict) -> str:
-    """The identity a run is matched by: problem, integrator, setting, horizon."""
-    if row.get("h") is not None:
-        setting = f"h={float(row['h']):g}"
-    else:
-        parts = [f"{k}={float(row[k]):g}" for k in ("rtol", "atol") if row.get(k) is not None]
-        setting = " ".join(parts) or "defaults"
-    t_end = row.get("t_end")
-    horizon = f"t_end={float(t_end):g}" if t_end is not None else "t_end=default"
-    return f"{row['problem']} / {row['integrator']} / {setting} / {horizon}"
+#: The recorded drift classes the gate compares (runs.csv columns).
+GROWTH = ("pos_growth", "energy_growth")
 
 
 def metrics_of(row: dict) -> dict[str, float | None]:
@@ -159,6 +157,14 @@ def _ratio(base: float, cur: float) -> str:
     return f"x{cur / base:.3g}"
 
 
+def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:
+    """``("regression" | "improvement" | None, change text)`` for one drift class."""
+    if base not in SEVERITY or cur not in SEVERITY or base == cur:
+        return None, ""
+    kind = "regression" if SEVERITY.index(cur) > SEVERITY.index(base) else "improvement"
+    return kind, f"{base} -> {cur}"
+
+
 def compare(baseline: dict, current: dict) -> list[Finding]:
     """Every regression, improvement and note between two ``{run id: entry}`` maps.
 
@@ -199,6 +205,11 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
             kind, change = compare_metric(metric, b, c)
             if kind is not None:
                 findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change, gating))
+        for series in GROWTH:
+            b, c = base.get("growth", {}).get(series), cur.get("growth", {}).get(series)
+            kind, change = compare_growth(b, c)
+            if kind is not None:
+                findings.append(Finding(kind, rid, series, b, c, change, gating))
     for rid in baseline:
         if rid not in current:
             findings.append(Finding("note", rid, "run", baseline[rid]["status"], "-",
@@ -206,32 +217,20 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
     return findings
 
 
-def entries(records, sensitive: dict[str, bool]) -> dict[str, dict]:
-    """Baseline entries of a suite's records (``sensitive``: problem spec -> flag)."""
+def entries(records) -> dict[str, dict]:
+    """Baseline entries of a suite's records, by run identity."""
     out = {}
     for record in records:
         row = record.row
         fail_step = row.get("fail_step")
-        out[run_id(row)] = {
+        out[identity(row)] = {
             "status": row["status"],
             "message": row.get("message") or "",
             "fail_step": int(fail_step) if fail_step is not None else None,
-            "sensitive": bool(sensitive.get(row["problem"], False)),
+            "sensitive": bool(row.get("sensitive")),
             "metrics": metrics_of(row),
+            "growth": {series: kind_of(row.get(series)) for series in GROWTH},
         }
-    return out
-
-
-def sensitivity(problem_specs) -> dict[str, bool]:
-    """``System.sensitive`` of each problem spec (specs that do not build count as not)."""
-    import problems
-
-    out = {}
-    for spec in set(problem_specs):
-        try:
-            out[spec] = bool(problems.make(spec).system.sensitive)
-        except Exception:  # the run itself reports the problem as an error
-            out[spec] = False
     return out
 
 
@@ -291,20 +290,19 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    from benchmarks import suites, worker
-
     try:
-        worker.load_plugins()
+        load_plugins()
         suite = suites.load(args.suite)
         baseline = None if args.update else read_baseline(args.baseline)
         with tempfile.TemporaryDirectory(prefix="driftbench-check-") as tmp:
             out = args.out or Path(tmp)
             records = run_specs(suite.runs, out, args.jobs, suite=f"check:{suite.name}",
-                                repeats=1, timeout=args.timeout or suite.timeout)
+                                repeats=1, timeout=args.timeout or suite.timeout,
+                                load=suite.load)
     except InputError as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
-    current = entries(records, sensitivity(r.row["problem"] for r in records))
+    current = entries(records)
     if args.update:
         if args.baseline.exists():
             try:

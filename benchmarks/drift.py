@@ -36,6 +36,12 @@ BOUNDED_BELOW, LINEAR_BELOW, QUADRATIC_BELOW = 0.35, 1.5, 2.5
 EXP_MIN_GROWTH = 20.0
 
 CLASSES = ("bounded", "linear", "quadratic", "superquadratic", "exponential", "indeterminate")
+#: Classes of growth from the mildest to the fastest (``indeterminate`` is not among them).
+SEVERITY = ("bounded", "linear", "quadratic", "superquadratic", "exponential")
+#: Round-off floors of the fits of a run's series: ``|g|`` (absolute) and energy (relative
+#: to the case's energy scale); a few hundred ulps of O(1) quantities.
+POS_FLOOR = 1e-13
+ENERGY_REL_FLOOR = 1e-13
 
 
 @dataclass(frozen=True)
@@ -63,6 +69,11 @@ class Growth:
         if self.kind == "bounded" and not math.isfinite(self.exponent):
             return "bounded (round-off)"
         return f"{self.kind} (p = {p:.2f})"
+
+
+def kind_of(label: str | None) -> str | None:
+    """The class of a :meth:`Growth.label` text (its first word), or None."""
+    return label.split(" ", 1)[0] if label else None
 
 
 def classify(t, y, t0: float = 0.0, floor: float = 0.0) -> Growth:

@@ -28,7 +28,7 @@ import os
 import statistics
 import time
 
-from benchmarks import worker
+from benchmarks import pool
 
 #: The goal for the share of the solve spent in our callbacks.
 SHARE_GOAL = 0.8
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rtol", type=float, default=1e-8, help="rtol (atol = rtol)")
     parser.add_argument("--rounds", type=int, default=3, help="timed solves of each key")
     args = parser.parse_args(argv)
-    os.environ.update(worker.thread_environment())
+    os.environ.update(pool.thread_environment())
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"pendulum, t_end = {args.t_end:g} s, rtol = atol = {args.rtol:g}; "

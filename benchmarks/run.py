@@ -3,28 +3,31 @@
 Examples::
 
     python -m benchmarks.run --suite quick
+    python -m benchmarks.run --load my_mechanism.py --problems my-mechanism --integrators rattle
     python -m benchmarks.run --problems sps-receiver pendulum --integrators rattle \\
         lobatto3ab3 --h 0.1 0.05 --t-end 100 --out results/
     python -m benchmarks.run --suite default --jobs 2 --timeout 600 --resume
     python -m benchmarks.run --list
 
 Every run executes in a worker process, ``--jobs`` of them side by side (default: the
-usable cores); a run past its time limit (``--timeout``, else its suite group's or suite's
-``timeout``, else one hour; the limit covers building the case, set-up and the timed
-solves) is killed and recorded as ``timeout``, a worker that crashes is recorded as
-``error`` with its signal, and the suite goes on (:mod:`benchmarks.runner` says how wall
-times stay honest). ``--resume`` skips the runs the store already holds as finished (any
-status but ``error`` and ``timeout``) for the same problem, parameters, options, ``t_end``
-and code version. A suite's studies run after its runs.
+usable cores), or on a Dask cluster (``--cluster local:N`` starts one of N workers here,
+``--cluster tcp://HOST:PORT`` uses a running scheduler; see :mod:`benchmarks.cluster`); a
+run past its time limit (``--timeout``, else its suite group's or suite's ``timeout``,
+else one hour; the limit covers building the case, set-up and the timed solves) is killed
+and recorded as ``timeout``, a worker that crashes is recorded as ``error`` with its
+signal, and the suite goes on (:mod:`benchmarks.batch` says how wall times stay honest).
+``--resume`` skips the runs the store already holds as finished (any status but ``error``
+and ``timeout``) for the same problem, parameters, options, ``t_end`` and code version. A
+suite's studies run after its runs.
 
 Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten in suite
 order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as
 stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
-all under ``--out``. Bad input (unknown names, malformed suite files,
-out-of-range options, inconsistent initial values) is reported on one line before any run
-starts, with exit status 2. Runs that fail are data: they are recorded with their status
-and the command still exits 0. An interrupted invocation (Ctrl-C, ``SIGTERM``) stops its
-workers, keeps every finished run and exits with status 130.
+all under ``--out``. Bad input (unknown names, malformed suite files, out-of-range
+options, inconsistent initial values, an unreachable cluster) is reported on one line
+before any run starts, with exit status 2. Runs that fail are data: they are recorded with
+their status and the command still exits 0. An interrupted invocation (Ctrl-C,
+``SIGTERM``) stops its workers, keeps every finished run and exits with status 130.
 """
 
 from __future__ import annotations
@@ -37,8 +40,11 @@ from pathlib import Path
 
 import integrators
 import problems
-from benchmarks import suites, worker
-from benchmarks.runner import InputError, RunSpec, expand, one_line, run_specs
+from benchmarks import suites
+from benchmarks.batch import STUDIES, expand, run_specs
+from benchmarks.executors import load_plugins
+from benchmarks.records import InputError, RunSpec, one_line
+from reports import build as build_report
 
 #: Exit status of bad input and of an interrupted invocation.
 EXIT_INPUT, EXIT_INTERRUPTED = 2, 130
@@ -63,20 +69,26 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed repeats of each solve (median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run on Dask: local:N (N workers here) or tcp://HOST:PORT (a running "
+                        "scheduler); default: the local process pool")
     p.add_argument("--timeout", type=float,
                    help="time limit of each run in seconds, overriding the suite's (inf: none)")
     p.add_argument("--resume", action="store_true",
                    help="skip runs the store already holds as finished (same run key)")
     p.add_argument("--no-report", action="store_true", help="do not build the report")
+    p.add_argument("--load", action="append", default=[], metavar="PATH_OR_MODULE",
+                   help="import a Python file or module that registers problems or "
+                        "integrators, before anything else (repeatable; trusted code)")
     p.add_argument("--list", action="store_true", help="list problems, integrators and suites")
     return p
 
 
 def listing() -> str:
-    lines = ["problems (name: parameters with defaults):"]
+    lines = ["problems (name: parameters with defaults [where it comes from]):"]
     for name in problems.names():
         params = ", ".join(f"{k}={v}" for k, v in problems.parameters(name).items())
-        lines.append(f"  {name}: {params}")
+        lines.append(f"  {name}: {params} [{problems.origin(name)}]")
     lines.append("integrators (key: options with defaults):")
     for key in integrators.keys():
         try:
@@ -92,7 +104,7 @@ def listing() -> str:
             description = f"(cannot be loaded: {exc})" if isinstance(exc, InputError) else ""
         lines.append(f"  {name}: {description}")
     lines.append("studies:")
-    lines.extend(f"  {name}: {target}" for name, target in suites.STUDIES.items())
+    lines.extend(f"  {name}: {target}" for name, target in STUDIES.items())
     return "\n".join(lines)
 
 
@@ -113,9 +125,15 @@ def check_arguments(args) -> None:
                 raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
 
 
-def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None]:
-    """The suite name, its runs, the repeat count, its studies and the default time limit."""
+def plan(args) -> tuple[list[RunSpec], dict]:
+    """The runs and the keyword arguments of :func:`benchmarks.batch.run_specs` (suite
+    name, repeats, studies, default time limit, Dask cluster, user code to load); loads
+    ``--load`` first, so that what it registers can be named."""
     check_arguments(args)
+    try:
+        loads = [problems.load(source) for source in args.load]
+    except problems.LoadError as exc:
+        raise InputError(one_line(exc)) from None
     if args.problems or args.integrators:
         if args.suite:
             raise InputError("give either --suite or --problems/--integrators, not both")
@@ -126,19 +144,27 @@ def plan(args) -> tuple[str, list[RunSpec], int, tuple[str, ...], float | None]:
                           args.t_end)
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
-        return "ad-hoc", runs, args.repeats or 3, (), args.timeout
+        return runs, dict(suite="ad-hoc", repeats=args.repeats or 3, timeout=args.timeout,
+                          cluster=args.cluster, load=loads)
     suite = suites.load(args.suite or "default")
     runs = suite.runs
     if args.t_end is not None:
         runs = [dataclasses.replace(r, t_end=args.t_end) for r in runs]
     if args.timeout is not None:
         runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
-    return (suite.name, runs, args.repeats or suite.repeats or 3, suite.studies,
-            args.timeout if args.timeout is not None else suite.timeout)
+    # The command line's engine wins over the suite's.
+    cluster = args.cluster or (suite.cluster if args.jobs is None else None)
+    return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,
+                      studies=suite.studies, cluster=cluster, load=[*loads, *suite.load],
+                      timeout=args.timeout if args.timeout is not None else suite.timeout)
 
 
-class Interrupted(Exception):
-    """SIGINT or SIGTERM: stop the workers, keep what finished."""
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM: stop the workers, keep what finished.
+
+    A ``BaseException``, as ``KeyboardInterrupt`` is, so that no ``except Exception`` on
+    the way (the Dask client has some) swallows it.
+    """
 
 
 def _interrupt(signum, frame):
@@ -148,15 +174,20 @@ def _interrupt(signum, frame):
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     if args.list:
-        worker.load_plugins()
+        try:
+            load_plugins()
+            for source in args.load:
+                problems.load(source)
+        except problems.LoadError as exc:
+            print(f"error: {one_line(exc)}", file=sys.stderr)
+            return EXIT_INPUT
         print(listing())
         return 0
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        worker.load_plugins()
-        name, runs, repeats, studies, timeout = plan(args)
-        records = run_specs(runs, args.out, args.jobs, suite=name, repeats=repeats,
-                            timeout=timeout, resume=args.resume, studies=studies)
+        load_plugins()
+        runs, options = plan(args)
+        records = run_specs(runs, args.out, args.jobs, resume=args.resume, **options)
     except InputError as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
@@ -173,7 +204,6 @@ def main(argv=None) -> int:
     summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
     if not args.no_report:
-        from reports import build as build_report
         for path in build_report(args.out / "driftbench.sqlite", args.out):
             print(f"wrote {path}")
     return 0

@@ -3,10 +3,11 @@
 Schema (version 2):
 
 - ``sessions``: one row per invocation, with provenance (suite, start time, git commit and
-  dirty flag, machine, Python and package versions);
-- ``runs``: one row per run with every ``runs.csv`` column, its session, the time it was
-  recorded, the integrator's nominal order (for convergence plots) and whether the problem
-  is declared chaotic (``System.sensitive``);
+  dirty flag, machine, Python and package versions, how wall times were kept honest);
+- ``runs``: one row per run with every ``runs.csv`` column
+  (:data:`benchmarks.records.COLUMNS`: the record is complete where the run happens, so
+  the store never rebuilds a problem or an integrator), its session and the time it was
+  recorded;
 - ``series``: the windowed drift and energy series and sampled states of each run, one row
   per named array (``window:pos``, ``sample:q``...), stored as raw little-endian float64
   bytes with the array's shape;
@@ -26,90 +27,31 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import platform
 import sqlite3
-import subprocess
 import time
-from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 import pandas as pd
 
-if TYPE_CHECKING:
-    from benchmarks.runner import Record
+from benchmarks.records import COLUMNS, TEXT_COLUMNS, Record, provenance
 
 SCHEMA_VERSION = 2
 STORE_NAME = "driftbench.sqlite"
-PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
-            "pandas", "matplotlib")
 #: Statuses of runs that a resumed suite must run again.
 UNFINISHED = ("error", "timeout")
 #: Session columns joined onto every run by :func:`load_runs` (stored name -> loaded name).
 SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha": "commit",
                    "dirty": "dirty", "machine": "machine", "python": "python",
                    "versions": "versions", "timing_note": "timing_note"}
-
-
-#: Columns that hold text; every other column whose values are numbers (or missing) is
-#: read as float64, so a metric that no run measured is NaN, not None.
-TEXT_COLUMNS = {"problem", "integrator", "status", "message", "q_final", "v_final",
-                "invariant_errors", "sampling", "options", "params", "run_key",
-                *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
+#: Columns read as text; every other column whose values are numbers (or missing) is read
+#: as float64, so a metric that no run measured is NaN, not None.
+TEXT = {*TEXT_COLUMNS, *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
 
 
 class StoreError(RuntimeError):
     """A store that cannot be opened: missing, or written by newer code."""
-
-
-def provenance() -> dict[str, object]:
-    """Commit, dirty flag, machine and versions of the code that runs now."""
-    root = Path(__file__).resolve().parent.parent
-
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True,
-                                  timeout=10).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    versions = {}
-    for name in PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    cpu = f"{os.cpu_count()} CPUs"
-    return {
-        "commit": git("rev-parse", "HEAD") or None,
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-        "machine": " ".join(x for x in (platform.node(), platform.system(),
-                                        platform.machine(), cpu) if x),
-        "python": platform.python_version(),
-        "versions": json.dumps(versions),
-    }
-
-
-def nominal_order(integrator_spec: str) -> int | None:
-    """The nominal order the integrator of a spec declares (``Integrator.order``), if any."""
-    import integrators  # the writer runs integrators anyway; readers never get here
-
-    try:
-        return integrators.make(integrator_spec).order
-    except Exception:  # an unknown or unbuildable spec is recorded as an error run
-        return None
-
-
-def sensitive(problem_spec: str) -> bool | None:
-    """Whether the problem of a spec is declared chaotic (``System.sensitive``), if known."""
-    import problems
-
-    try:
-        return bool(problems.make(problem_spec).system.sensitive)
-    except Exception:  # a problem that does not build is recorded as an error run
-        return None
 
 
 # --------------------------------------------------------------------------- schema
@@ -123,7 +65,7 @@ def _create(db: sqlite3.Connection, columns) -> None:
             dirty INTEGER, machine TEXT, python TEXT, versions TEXT, timing_note TEXT);
         CREATE TABLE runs (
             id INTEGER PRIMARY KEY, session INTEGER REFERENCES sessions(id),
-            recorded REAL, nominal_order REAL, sensitive INTEGER, {cols});
+            recorded REAL, {cols});
         CREATE TABLE series (
             run INTEGER REFERENCES runs(id), name TEXT, data BLOB, shape TEXT,
             PRIMARY KEY (run, name));
@@ -170,8 +112,7 @@ def _v1_to_v2(db: sqlite3.Connection) -> None:
 
 #: Columns of version 2 that files written while it was developed may lack; a writer adds
 #: them (and any ``runs.csv`` column the file lacks), readers do without.
-LATE_COLUMNS = {"sessions": {"timing_note": "TEXT"},
-                "runs": {"recorded": "REAL", "nominal_order": "REAL", "sensitive": "INTEGER"}}
+LATE_COLUMNS = {"sessions": {"timing_note": "TEXT"}, "runs": {"recorded": "REAL"}}
 
 #: version -> the function that upgrades a database of that version by one.
 MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2}
@@ -209,11 +150,8 @@ class Store:
     """
 
     def __init__(self, path: Path):
-        from benchmarks.runner import COLUMNS  # writers only: reading needs no runner
-
-        self.columns = tuple(COLUMNS)
+        self.columns = COLUMNS
         self.path = Path(path)
-        self._sensitive: dict[str, bool | None] = {}  # per problem spec: cases cost to build
         self.db = sqlite3.connect(self.path, timeout=30.0)
         self.db.execute("PRAGMA journal_mode=WAL")
         # WAL with synchronous=NORMAL keeps every committed transaction through a crash
@@ -256,21 +194,14 @@ class Store:
                  p["versions"], timing_note))
         return cur.lastrowid
 
-    def add(self, session: int, record: "Record") -> int:
+    def add(self, session: int, record: Record) -> int:
         """Append one finished run with its series, in one transaction; return its run id."""
         cols = ", ".join(f'"{c}"' for c in self.columns)
         marks = ", ".join("?" for _ in self.columns)
-        order = nominal_order(record.row["integrator"]) if record.row.get("integrator") else None
-        problem = record.row.get("problem")
-        if problem not in self._sensitive:
-            self._sensitive[problem] = sensitive(problem) if problem else None
-        chaotic = self._sensitive[problem]
         with self.db:
             cur = self.db.execute(
-                f"INSERT INTO runs (session, recorded, nominal_order, sensitive, {cols}) "
-                f"VALUES (?, ?, ?, ?, {marks})",
-                (session, time.time(), order, None if chaotic is None else int(chaotic),
-                 *(_sql(record.row.get(c)) for c in self.columns)))
+                f"INSERT INTO runs (session, recorded, {cols}) VALUES (?, ?, {marks})",
+                (session, time.time(), *(_sql(record.row.get(c)) for c in self.columns)))
             run = cur.lastrowid
             arrays = {f"window:{k}": v for k, v in record.windows.items()}
             arrays.update({f"sample:{k}": v for k, v in record.samples.items()})
@@ -345,10 +276,11 @@ def _reader(db) -> sqlite3.Connection:
 def load_runs(db) -> pd.DataFrame:
     """Every stored run with its session's provenance, one row per run.
 
-    Columns: ``run_id``, ``session``, ``recorded``, ``nominal_order``, ``sensitive``
-    (1 for a chaotic problem, 0 if not, missing if unknown), every stored
-    ``runs.csv`` column, and ``suite``, ``session_started``, ``commit``, ``dirty``,
-    ``machine``, ``python``, ``versions`` from the session.
+    Columns: ``run_id``, ``session``, ``recorded``, every stored ``runs.csv`` column
+    (``sensitive``: 1 for a chaotic problem, 0 if not, missing if unknown, as for every
+    column a file written by older code lacks), and ``suite``, ``session_started``,
+    ``commit``, ``dirty``, ``machine``, ``python``, ``versions``, ``timing_note`` from the
+    session.
     """
     con = _reader(db)
     try:
@@ -361,8 +293,10 @@ def load_runs(db) -> pd.DataFrame:
             f"ON r.session = s.id ORDER BY r.id", con)
     finally:
         con.close()
+    # A file written by older code lacks the columns added since: they read as missing.
+    frame = frame.assign(**{c: None for c in COLUMNS if c not in frame.columns})
     for column in frame.columns:
-        if column in TEXT_COLUMNS or frame[column].dtype != object:
+        if column in TEXT or frame[column].dtype != object:
             continue  # pandas already typed it (ids stay integers)
         values = frame[column].dropna()
         if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):

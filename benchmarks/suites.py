@@ -20,8 +20,17 @@ tables of runs and ``studies``; each group runs every combination of its lists::
 ``timeout`` overrides the suite's, and ``--timeout`` on the command line overrides both.
 
 ``studies = ["flexible-modal"]`` names studies that are not integrator runs: each is a
-function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in :data:`STUDIES`
-(never taken from the file), run after the suite's runs. A suite may hold only studies.
+function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in
+:data:`benchmarks.batch.STUDIES` (never taken from the file), run after the suite's runs.
+A suite may hold only studies.
+
+``load = ["models/arm.py", "mypackage.problems"]`` imports user code that registers
+problems and integrators (files relative to the suite file, or module names) before the
+groups are read; it is the only code a suite file can run, and it is trusted as it is.
+
+``cluster = "local:4"`` or ``cluster = "tcp://HOST:PORT"`` runs the suite on a Dask cluster
+(:mod:`benchmarks.cluster`) unless the command line names an engine (``--jobs`` or
+``--cluster``).
 
 A file that is not valid TOML, has an unknown key, a value of the wrong type or out of
 range, or names an unknown problem, integrator or study is refused with one line that
@@ -37,21 +46,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import problems
-from benchmarks.runner import InputError, RunSpec, expand
+from benchmarks.batch import STUDIES, expand
+from benchmarks.cluster import parse as parse_cluster
+from benchmarks.records import InputError, RunSpec
 from problems import SpecError, suggest
 
 SUITE_DIR = Path(__file__).parent / "suites"
-
-#: Studies a suite may name: name -> "module:function" with ``function(out) -> dict``.
-STUDIES: dict[str, str] = {
-    "flexible-modal": "benchmarks.flexible_modal:run",
-}
 
 NUMBER, STRINGS, NUMBERS = "a number", "a list of strings", "a list of numbers"
 #: Allowed keys and what they hold: top level, and per group.
 TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
             "repeats": "a whole number", "timeout": NUMBER, "budget": NUMBER,
-            "studies": STRINGS}
+            "studies": STRINGS, "cluster": "a string", "load": STRINGS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
               "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
 
@@ -89,6 +95,12 @@ class SuiteError(InputError):
 
 @dataclass(frozen=True)
 class Suite:
+    """A loaded suite file: its runs, their defaults, its studies and the engine it names.
+
+    ``repeats``, ``timeout``, ``budget`` and ``cluster`` are ``None`` where the file sets
+    none; ``load`` holds the user code it loaded (resolved paths and module names).
+    """
+
     name: str
     description: str
     runs: list[RunSpec]
@@ -96,19 +108,13 @@ class Suite:
     timeout: float | None = None
     studies: tuple[str, ...] = field(default=())
     budget: float | None = None
+    cluster: str | None = None
+    load: tuple[str, ...] = field(default=())
 
 
 def names() -> list[str]:
     """The suites shipped with the project."""
     return sorted(p.stem for p in SUITE_DIR.glob("*.toml"))
-
-
-def study_target(name: str) -> str:
-    """The ``module:function`` of a registered study."""
-    if name not in STUDIES:
-        raise SuiteError(f"unknown study {name!r}{suggest(name, STUDIES)}; "
-                         f"known: {', '.join(sorted(STUDIES))}")
-    return STUDIES[name]
 
 
 def _group_spans(text: str) -> list[tuple[int, int]]:
@@ -182,6 +188,18 @@ def load(name: str) -> Suite:
         if study not in STUDIES:
             fail(_line_of(text, "studies"), f"unknown study {study!r}{suggest(study, STUDIES)}; "
                                             f"known: {', '.join(sorted(STUDIES))}")
+    loaded = []
+    for source in data.get("load", []):
+        try:
+            loaded.append(problems.load(source, base=path.parent))
+        except problems.LoadError as exc:
+            fail(_line_of(text, "load"), f"load: {exc}")
+    cluster = data.get("cluster")
+    if cluster is not None:
+        try:
+            parse_cluster(cluster)
+        except InputError as exc:
+            fail(_line_of(text, "cluster"), str(exc))
     if not groups and not studies:
         fail(0, "no [[group]] table and no studies: a suite needs at least one")
     spans = _group_spans(text)
@@ -221,4 +239,5 @@ def load(name: str) -> Suite:
                 RunSpec(r.problem, r.integrator, r.h, r.rtol, r.atol, r.t_end, timeout, r.origin)
                 for r in runs]
     return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
-                 timeout, studies, float(data["budget"]) if "budget" in data else None)
+                 timeout, studies, float(data["budget"]) if "budget" in data else None,
+                 cluster, tuple(loaded))

@@ -1,19 +1,42 @@
-"""Problem registry: names map to case factories; ``name:key=value,...`` sets parameters.
+"""Problem registry and the public problem-authoring API.
 
-A problem module defines a factory whose keyword arguments (with defaults) are the
-problem's parameters and registers it with :func:`register`. The parameter types come from
-the defaults, so ``chain:N=64`` gives an ``int`` and ``sps-ring:coriolis=false`` a ``bool``.
+A problem is a factory whose keyword arguments (with defaults) are its parameters and which
+returns a :class:`Case`; :func:`register` names it. The parameter types come from the
+defaults, so ``chain:N=64`` gives an ``int`` and ``sps-ring:coriolis=false`` a ``bool``.
+
+The public API, exactly what the built-in problems use:
+
+- :class:`System`: the physics, ``mass``, ``potential``, ``constraints`` and optional
+  ``forces`` as JAX functions (everything else is derived by autodiff);
+- :func:`make_case`: a :class:`Case` from a system, initial values, a horizon, the
+  parameters, the energy scale and an optional :class:`Reference`;
+- :func:`register`: the decorator that names a factory.
+
+User code registers problems (and integrators, through :func:`integrators.register`) the
+same way, from a file or a module given to :func:`load` (``--load`` on the command line,
+``load = [...]`` in a suite file) or from an installed package through the entry-point
+group ``driftbench.problems``. Loaded code is trusted Python, run as it is.
 """
 
 from __future__ import annotations
 
 import difflib
+import hashlib
 import importlib
+import importlib.util
 import inspect
+import sys
+import sysconfig
+import traceback
+from importlib import metadata
+from pathlib import Path
 from typing import Callable
 
 from problems.case import Case, InconsistentInitialValues, Reference, make_case  # noqa: F401
 from problems.mechanics import Mechanics, System  # noqa: F401
+
+#: The public problem-authoring API.
+__all__ = ["System", "make_case", "Reference", "Case", "register", "load"]
 
 REGISTRY: dict[str, Callable[..., Case]] = {}
 
@@ -25,17 +48,55 @@ _MODULES = (
 )
 
 
+#: Entry-point group through which installed packages register problems.
+ENTRY_POINTS = "driftbench.problems"
+
+#: Where each registered problem comes from: ``built-in``, a file, a module or a package.
+ORIGINS: dict[str, str] = {}
+#: What :func:`load` is loading now (the origin of what registers meanwhile).
+_loading: list[str] = []
+#: Loaded sources: resolved file path or module name -> module.
+_loaded: dict[str, object] = {}
+
+
 class SpecError(ValueError):
     """A problem or integrator specification that cannot be understood."""
 
 
-def register(name: str):
-    """Decorator: register a case factory under ``name``."""
+class LoadError(SpecError):
+    """User code that cannot be loaded: the message names the file and what is wrong."""
+
+
+def register(name: str, origin: str | None = None):
+    """Decorator: register a case factory under ``name``.
+
+    Parameters
+    ----------
+    name : str
+        The problem's name on the command line and in suites (kebab-case).
+    origin : str, optional
+        Where the factory comes from, as ``--list`` shows it; default: the file, module or
+        package being loaded (:func:`load`), else ``built-in``.
+
+    The factory's keyword arguments, all with defaults, are the problem's parameters
+    (``name:key=value,...``); it returns a :class:`Case` (build it with
+    :func:`make_case`)::
+
+        @register("spherical-pendulum")
+        def spherical_pendulum(L: float = 1.0, t_end: float = 100.0) -> Case:
+            ...
+
+    Raises
+    ------
+    ValueError
+        When ``name`` is registered already (the message says by whom).
+    """
 
     def wrap(factory: Callable[..., Case]) -> Callable[..., Case]:
         if name in REGISTRY:
-            raise ValueError(f"problem {name!r} registered twice")
+            raise ValueError(f"problem {name!r} registered twice (first by {ORIGINS[name]})")
         REGISTRY[name] = factory
+        ORIGINS[name] = origin or (_loading[-1] if _loading else "built-in")
         return factory
 
     return wrap
@@ -109,6 +170,113 @@ def names() -> list[str]:
     return sorted(REGISTRY)
 
 
+def origin(name: str) -> str:
+    """Where problem ``name`` comes from: ``built-in``, a file, a module or a package."""
+    _load()
+    return ORIGINS[name]
+
+
 def _load() -> None:
+    """Import the built-in problems, then (once) those of installed packages (entry
+    points)."""
     for module in _MODULES:
         importlib.import_module(module)
+    if ENTRY_POINTS not in _loaded:  # installed packages are looked up once
+        _loaded[ENTRY_POINTS] = None
+        for entry in metadata.entry_points(group=ENTRY_POINTS):
+            package = entry.dist.name if entry.dist is not None else entry.value
+            _run_user(f"package {package} ({entry.value})", entry.value, entry.load)
+
+
+#: Folders of the library's own code and of installed code: frames there are not the user's.
+_NOT_USER = tuple(Path(p).resolve() for p in (
+    *(Path(__file__).resolve().parent.parent / pkg
+      for pkg in ("problems", "integrators", "benchmarks", "reports")),
+    sysconfig.get_paths()["stdlib"], sysconfig.get_paths()["purelib"],
+    sysconfig.get_paths()["platlib"]))
+
+
+def user_frame(exc: BaseException, path: str | None = None) -> str:
+    """``file:line`` of the innermost frame of ``exc``'s traceback in the file ``path``,
+    or (``path`` None) in any file that is neither the library's nor installed code;
+    ``""`` when there is none."""
+    where = ""
+    for frame in traceback.extract_tb(exc.__traceback__):
+        if frame.filename.startswith("<"):
+            continue
+        file = Path(frame.filename).resolve()
+        if (str(file) == path if path else not any(file.is_relative_to(d) for d in _NOT_USER)):
+            where = f"{frame.filename}:{frame.lineno}"
+    return where
+
+
+def _run_user(label: str, source: str, run: Callable[[], object]) -> object:
+    """Run ``run`` (an import of user code) with ``label`` as the origin of what it
+    registers; turn any failure into a :class:`LoadError` naming the user's file:line."""
+    if source in _loaded:
+        return _loaded[source]
+    _loading.append(label)
+    try:
+        module = run()
+    except Exception as exc:
+        where = (f"{exc.filename}:{exc.lineno}" if isinstance(exc, SyntaxError) else
+                 user_frame(exc, source if source.endswith(".py") else None))
+        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        raise LoadError(f"{where or label}: {detail} (while loading {label})") from None
+    finally:
+        _loading.pop()
+    _loaded[source] = module
+    return module
+
+
+def load(source: str, base: Path | None = None) -> str:
+    """Import user code that registers problems (and integrators): a file or a module.
+
+    Parameters
+    ----------
+    source : str
+        A path to a Python file (``.py``; relative paths are taken from ``base``) or the
+        name of an importable module.
+    base : Path, optional
+        The folder relative file paths start from (a suite file's); default: the current
+        folder.
+
+    Returns
+    -------
+    str
+        What was loaded: the file's resolved path or the module's name (what a worker
+        process loads to see the same registrations).
+
+    Raises
+    ------
+    LoadError
+        A file that does not exist, a module that cannot be found, or code that raises
+        while it is imported (a name registered twice, an exception): one line with the
+        user's ``file:line`` and what went wrong.
+    """
+    _load()
+    if source.endswith(".py") or "/" in source or "\\" in source:
+        path = Path(source).expanduser()
+        path = (Path(base) / path if base is not None and not path.is_absolute() else path)
+        path = path.resolve()
+        if not path.is_file():
+            raise LoadError(f"{source}: no such Python file ({path})")
+        name = f"driftbench_user_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
+
+        def run():
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[name]
+                raise
+            return module
+
+        _run_user(str(path), str(path), run)
+        return str(path)
+    if importlib.util.find_spec(source.split(".")[0]) is None:
+        raise LoadError(f"{source}: no such Python file or importable module")
+    _run_user(f"module {source}", source, lambda: importlib.import_module(source))
+    return source

@@ -139,6 +139,27 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
               reference: Reference | None = None, **notes) -> Case:
     """Build a :class:`Case`, checking the initial values.
 
+    Parameters
+    ----------
+    name : str
+        The problem's name (as registered).
+    system : System
+        The physics, ``M(q) q'' = -grad U + f(t, q, q') - G^T lam`` with ``g(q, t) = 0``.
+    q0, v0 : array_like, shape (n,)
+        Initial positions and velocities; consistent means ``g(q0, t0) = 0`` and
+        ``G(q0) v0 + g_t(q0, t0) = 0``.
+    t_span : (float, float)
+        The horizon ``(t0, t_end)``, ``t_end > t0``.
+    params : mapping
+        The physical parameters, recorded verbatim with every run.
+    energy_scale : float
+        The size of the energy, positive: ``rel_energy_error = max |H - H0| / energy_scale``
+        (never ``|H0|``, which can be 0).
+    reference : Reference, optional
+        A reference solution (final errors and scd are n/a without one).
+    **notes
+        Anything else worth recording with the case.
+
     Residuals up to :data:`CONSISTENT_TOL` are accepted; up to :data:`PROJECT_TOL` they are
     projected away (recorded in ``notes['projected']``); larger ones, or non-finite values,
     raise :class:`InconsistentInitialValues` with the residuals.

@@ -1,7 +1,8 @@
-"""What the report computes from stored runs: selections, growth classes, winners, orders.
+"""What the report computes from stored runs: selections, winners, orders.
 
 Pure functions of the ``load_runs`` frame and the stored series; nothing here imports an
-integrator or a problem.
+integrator or a problem, and nothing reconstructs what a run knew: energy scales, drift
+classes, nominal orders and sensitivity are columns of the stored record.
 """
 
 from __future__ import annotations
@@ -13,15 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from benchmarks.drift import Growth, classify, fit_order
+from benchmarks import records
+from benchmarks.drift import fit_order
 
-#: What identifies a run across invocations: a later run with the same identity replaces
-#: an earlier one in the per-problem tables (the history keeps them all).
-IDENTITY = ("problem", "integrator", "h", "rtol", "atol", "t_end")
-#: Round-off floors for the growth fits: ``|g|`` (absolute) and energy (relative to the
-#: case's energy scale); a few hundred ulps of O(1) quantities.
-POS_FLOOR = 1e-13
-ENERGY_REL_FLOOR = 1e-13
 #: Factor within which two methods count as tied for the smallest drift.
 TIE_FACTOR = 10.0
 #: Errors below these are round-off and left out of order fits: against a true reference,
@@ -68,11 +63,7 @@ def base_name(spec: str) -> str:
 
 def setting(row) -> str:
     """The swept setting of a run: its step size or tolerances."""
-    h, rtol, atol = _num(row.get("h")), _num(row.get("rtol")), _num(row.get("atol"))
-    if not math.isnan(h):
-        return f"h={h:g}"
-    parts = [f"{k}={v:g}" for k, v in (("rtol", rtol), ("atol", atol)) if not math.isnan(v)]
-    return " ".join(parts) or "defaults"
+    return records.setting(row.get("h"), row.get("rtol"), row.get("atol"))
 
 
 def is_ok(row) -> bool:
@@ -80,48 +71,12 @@ def is_ok(row) -> bool:
 
 
 def latest(runs: pd.DataFrame) -> pd.DataFrame:
-    """The most recent run of each identity (see :data:`IDENTITY`)."""
+    """The most recent run of each identity (:func:`benchmarks.records.identity`): a later
+    run replaces an earlier one in the per-problem tables (the history keeps them all)."""
     if runs.empty:
         return runs
-    key = pd.Series([identity(r) for _, r in runs.iterrows()], index=runs.index)
+    key = pd.Series([records.identity(r) for _, r in runs.iterrows()], index=runs.index)
     return runs.loc[~key.duplicated(keep="last")].reset_index(drop=True)
-
-
-def identity(row) -> str:
-    """The identity of a run as text (missing values spelled alike however stored)."""
-    parts = []
-    for column in IDENTITY:
-        value = row.get(column)
-        number = _num(value) if column != "problem" and column != "integrator" else math.nan
-        if not math.isnan(number):
-            parts.append(repr(number))
-        elif value is None or (isinstance(value, float) and math.isnan(value)):
-            parts.append("-")
-        else:
-            parts.append(str(value))
-    return "|".join(parts)
-
-
-def energy_scale(row) -> float:
-    """The case's energy scale, recovered from the absolute and relative energy errors."""
-    e, rel = _num(row.get("max_energy_error")), _num(row.get("rel_energy_error"))
-    return e / rel if rel > 0 and e > 0 else math.nan
-
-
-def growth_of(row, windows: dict) -> tuple[Growth | None, Growth | None]:
-    """Growth classes of ``|g|`` and of ``|H - H0|`` of one run (None without a series)."""
-    t = windows.get("t")
-    if t is None or len(t) == 0:
-        return None, None
-    # The store keeps no t0: the cases start at 0, and a series that starts earlier says so.
-    t0 = min(0.0, float(t[0]))
-    pos = classify(t, windows["pos"], t0=t0, floor=POS_FLOOR) if "pos" in windows else None
-    energy = None
-    if "energy" in windows and not math.isnan(_num(row.get("rel_energy_error"))):
-        scale = energy_scale(row)
-        floor = ENERGY_REL_FLOOR * scale if math.isfinite(scale) else 0.0
-        energy = classify(t, windows["energy"], t0=t0, floor=floor)
-    return pos, energy
 
 
 def representative(runs: pd.DataFrame) -> pd.DataFrame:
@@ -195,15 +150,15 @@ def drift_winner(runs: pd.DataFrame) -> Winner:
     return Winner(best, vals[best], verdict)
 
 
-def energy_winner(runs: pd.DataFrame, growth: dict[int, tuple]) -> Winner:
-    """Smallest max relative energy error among the finished representative runs."""
+def energy_winner(runs: pd.DataFrame) -> Winner:
+    """Smallest max relative energy error among the finished representative runs, with
+    the drift class its run recorded."""
     rep = representative(runs)
     rep = rep[(rep["status"] == "ok") & rep["rel_energy_error"].notna()]
     if rep.empty:
         return Winner(None, math.nan, "no conserved energy, or no finished run")
     row = rep.loc[rep["rel_energy_error"].astype(float).idxmin()]
-    g = growth.get(int(row["run_id"]), (None, None))[1]
-    cls = f", {g.label()}" if g is not None else ""
+    cls = f", {row['energy_growth']}" if text(row.get("energy_growth")) else ""
     return Winner(row["integrator"], float(row["rel_energy_error"]),
                   f"{row['integrator']} ({setting(row)}): {fmt(row['rel_energy_error'])}{cls}")
 

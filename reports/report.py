@@ -24,8 +24,8 @@ import pandas as pd
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
 from reports import figures, scaling as scaling_section, seed
 from reports.analysis import (Convergence, at_sweep_horizon, convergence, cost_winner,
-                              drift_winner, energy_winner, fmt, growth_of, is_sensitive,
-                              latest, representative, setting, text)
+                              drift_winner, energy_winner, fmt, is_sensitive, latest,
+                              representative, setting, text)
 from reports.document import Bullets, Document, Figure, Para, Table, to_html, to_markdown
 from reports.svg import SvgError, clean
 
@@ -54,17 +54,15 @@ def build(db_path, out_dir, scaling=None) -> list[Path]:
         return load_series(db_path, run_id)
 
     current = latest(runs)
-    growth = {int(r["run_id"]): growth_of(r, series(int(r["run_id"]))["windows"])
-              for _, r in current.iterrows()}
     colors = figures.palette(set(runs["integrator"]) if not runs.empty else set())
 
     doc = Document(TITLE)
     doc.add(Para(_scope(runs, current)))
-    _headline(doc, current, growth)
+    _headline(doc, current)
     _history(doc, runs)
     seed.section(doc, current, series, colors)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
-        _problem(doc, problem, current[current["problem"] == problem], growth, series, colors)
+        _problem(doc, problem, current[current["problem"] == problem], series, colors)
     _studies(doc, artifacts)
     if scaling_data is not None:
         scaling_section.section(doc, scaling_data)
@@ -93,16 +91,16 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
 
 # --------------------------------------------------------------------------- headline
 
-def _headline_rows(current: pd.DataFrame, growth) -> list[list[str]]:
+def _headline_rows(current: pd.DataFrame) -> list[list[str]]:
     rows = []
     for problem in sorted(current["problem"].unique()):
         sub = current[current["problem"] == problem]
-        rows.append([problem, drift_winner(sub).text, energy_winner(sub, growth).text,
+        rows.append([problem, drift_winner(sub).text, energy_winner(sub).text,
                      cost_winner(sub).text])
     return rows
 
 
-def _headline(doc: Document, current: pd.DataFrame, growth) -> None:
+def _headline(doc: Document, current: pd.DataFrame) -> None:
     doc.heading(2, "Headline")
     if current.empty:
         doc.add(Para("No runs."))
@@ -114,7 +112,7 @@ def _headline(doc: Document, current: pd.DataFrame, growth) -> None:
                  "accuracy (final error where a reference exists, else the energy error) is at "
                  "or below the median of the best accuracies the methods reached."))
     doc.add(Table(["problem", "drift", "energy", "cost at matched accuracy"],
-                  _headline_rows(current, growth)))
+                  _headline_rows(current)))
 
 
 def _history(doc: Document, runs: pd.DataFrame) -> None:
@@ -130,12 +128,11 @@ def _history(doc: Document, runs: pd.DataFrame) -> None:
                      else runs[runs["commit"] == commit])
         dirty = " (dirty)" if sub["dirty"].astype(bool).any() else ""
         date = time.strftime("%Y-%m-%d %H:%M", time.localtime(started))
-        growth = {int(r["run_id"]): (None, None) for _, r in sub.iterrows()}
         for problem in sorted(sub["problem"].unique()):
             p = sub[sub["problem"] == problem]
             rows.append([f"{text(commit)[:10] or 'unknown'}{dirty}", date, problem,
                          drift_winner(p).text,
-                         energy_winner(p, growth).text, cost_winner(p).text])
+                         energy_winner(p).text, cost_winner(p).text])
     doc.add(Table(["commit", "first run", "problem", "drift", "energy",
                    "cost at matched accuracy"], rows))
 
@@ -164,25 +161,24 @@ def _invariants(row) -> str:
     return "; ".join(f"{k}: {fmt(v)}" for k, v in inv.items())
 
 
-def _summary(doc: Document, runs: pd.DataFrame, growth) -> None:
+def _summary(doc: Document, runs: pd.DataFrame) -> None:
     with_inv = runs["invariant_errors"].fillna("").astype(bool).any() \
         if "invariant_errors" in runs else False
     columns = ["integrator", "setting", "t_end", "status", "steps", "evaluations", "wall [s]",
                "max |g|", "max |G v + g_t|", "max rel. energy error", "|g| growth",
-               "energy growth", "final error", "scd"]
+               "energy growth", "final error", "scd", "linear solver"]
     if with_inv:
         columns.append("invariant errors")
     columns.append("message")
     rows = []
     for _, r in runs.sort_values(["integrator", "h", "rtol"]).iterrows():
-        pos, energy = growth.get(int(r["run_id"]), (None, None))
         row = [r["integrator"], setting(r), fmt(r["t_end"]), str(r["status"]),
                _cell(r, "n_steps"), _cell(r, "n_f_evals"), _cell(r, "wall_s"),
                _cell(r, "max_pos_residual"), _cell(r, "max_vel_residual"),
-               _cell(r, "rel_energy_error"),
-               pos.label() if pos is not None else _missing(r),
-               energy.label() if energy is not None else _missing(r),
-               _cell(r, "final_state_error"), _cell(r, "scd")]
+               _cell(r, "rel_energy_error"), text(r.get("pos_growth")) or _missing(r),
+               text(r.get("energy_growth")) or _missing(r),
+               _cell(r, "final_state_error"), _cell(r, "scd"),
+               text(r.get("linear_solver")) or _missing(r)]
         if with_inv:
             row.append(_invariants(r) or _missing(r))
         row.append(text(r["message"]))
@@ -193,7 +189,7 @@ def _summary(doc: Document, runs: pd.DataFrame, growth) -> None:
                                  "energy)."))
 
 
-def _problem(doc: Document, problem: str, runs: pd.DataFrame, growth, series, colors) -> None:
+def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) -> None:
     doc.heading(2, f"Problem: {problem}")
     n_bad = int((runs["status"] != "ok").sum())
     horizons = ", ".join(fmt(x) for x in sorted(runs["t_end"].dropna().unique()))
@@ -205,7 +201,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, growth, series, co
                      "than a method's accuracy; drift, energy error and cost are the measures "
                      "to compare, and the drift gate does not gate on it."))
     doc.heading(3, f"{problem}: summary")
-    _summary(doc, runs, growth)
+    _summary(doc, runs)
     bad = runs[runs["status"] != "ok"]
     if not bad.empty:
         doc.add(Para("Runs that did not finish:"))

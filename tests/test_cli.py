@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.runner import CODE_VERSION_ENV
-from benchmarks.worker import PLUGIN_ENV
+from benchmarks.executors import PLUGIN_ENV
+from benchmarks.records import CODE_VERSION_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
@@ -131,19 +131,23 @@ def test_sigkill_midway_then_resume_loses_and_redoes_nothing(tmp_path):
     assert f"{len(before)} of 4 runs are finished" in stderr
 
 
-def test_sigterm_stops_the_workers_and_keeps_the_store(tmp_path):
+@pytest.mark.parametrize("engine", [["--jobs", "1"], ["--cluster", "local:1"]],
+                         ids=["pool", "dask"])
+def test_sigterm_stops_the_workers_and_keeps_the_store(engine, tmp_path):
     out, marker = tmp_path / "out", uuid.uuid4().hex
     db = out / "driftbench.sqlite"
-    proc = start(["--problems", "pendulum", "--integrators", "test-hang", "--h", "0.1",
-                  "--timeout", "600", "--jobs", "1"], out, marker, subprocess.PIPE)
-    wait_for(lambda: len(marked_processes(marker)) >= 2 and stored(db, "SELECT id FROM sessions"),
-             120, "a worker and a session")
+    proc = start(["--problems", "pendulum", "--integrators", "rattle", "test-hang", "--h",
+                  "0.1", "--t-end", "0.5", "--timeout", "600", *engine], out, marker,
+                 subprocess.PIPE)
+    wait_for(lambda: len(stored(db, "SELECT id FROM runs")) >= 1, 240, "a finished run")
     proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130
     assert "interrupted (SIGTERM)" in stderr and "Traceback" not in stderr
-    wait_for(lambda: not marked_processes(marker), 20, "the workers to end")
+    # 60 s: a Dask cluster takes seconds to close its workers on a loaded machine.
+    wait_for(lambda: not marked_processes(marker), 60, "the workers to end")
     assert integrity(db) == "ok"
+    assert stored(db, "SELECT integrator, status FROM runs") == [("rattle", "ok")]
 
 
 def test_suite_time_holds_each_suite_to_its_budget(tmp_path, capsys):

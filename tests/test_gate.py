@@ -9,7 +9,8 @@ import textwrap
 
 import pytest
 
-from benchmarks import check, worker
+from benchmarks import check
+from benchmarks.executors import PLUGIN_ENV
 from benchmarks.check import compare, compare_metric
 from integrators.lobatto import LobattoIIIAIIIB
 
@@ -52,6 +53,17 @@ def test_status_changes_and_sensitive_problems():
     assert back[("a", "status")] == "improvement"
 
 
+def test_drift_classes_that_grow_faster_regress():
+    base = {"a": {**entry(), "growth": {"pos_growth": "bounded", "energy_growth": "linear"}}}
+    cur = {"a": {**entry(), "growth": {"pos_growth": "quadratic", "energy_growth": "bounded"}}}
+    found = {f.metric: f for f in compare(base, cur)}
+    assert found["pos_growth"].kind == "regression" and found["pos_growth"].gating
+    assert found["energy_growth"].kind == "improvement"
+    # An indeterminate class (too few windows) compares with nothing.
+    cur["a"]["growth"]["pos_growth"] = "indeterminate"
+    assert "pos_growth" not in {f.metric for f in compare(base, cur)}
+
+
 SUITE = """
 description = "drift gate test: two deterministic short runs"
 [[group]]
@@ -83,7 +95,7 @@ def test_the_gate_passes_unchanged_code_and_fails_a_planted_regression(tmp_path)
 
     plugin = tmp_path / "loose_newton.py"
     plugin.write_text(PLANT)
-    env = {**os.environ, worker.PLUGIN_ENV: str(plugin)}
+    env = {**os.environ, PLUGIN_ENV: str(plugin)}
     proc = subprocess.run([sys.executable, "-m", "benchmarks.check", *args], env=env,
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == check.EXIT_REGRESSION, proc.stdout + proc.stderr

@@ -14,7 +14,8 @@ import pytest
 import integrators
 import problems
 from benchmarks.metrics import summarize
-from benchmarks.runner import RunSpec, execute
+from benchmarks.execute import execute
+from benchmarks.records import RunSpec
 from integrators.base import FAILED, OK, Grid
 from integrators.ida import (EXCLUDED, FORMULATIONS, consistent_values, dae_residual,
                              iteration_matrix)

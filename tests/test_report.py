@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.runner import COLUMNS, Record
+from benchmarks.records import COLUMNS, Record
 from benchmarks.store import Store
 from reports import build
 from reports.seed import SEED_PARAMS, claim_sentence, seed_runs
@@ -36,7 +36,9 @@ def run(problem, integrator, h, status="ok", message="", t_end=10.0, params=None
                t_final=t[stop - 1], fail_step=None if status == "ok" else stop + 1,
                q_final=json.dumps([1.0 + (final or 0.0), 0.8]), v_final=json.dumps([0.0, 0.0]),
                options=json.dumps({"h": h, "stages": order // 2 + 1}),
-               params=json.dumps(params or {}))
+               params=json.dumps(params or {}), nominal_order=order, sensitive=0,
+               pos_growth="bounded (round-off)" if status == "ok" else None,
+               energy_growth="linear (p = 1.00)" if status == "ok" else None)
     windows = {"t": t[:stop], "pos": np.full(stop, pos), "vel": np.full(stop, pos / 2),
                "energy": energy * (0.5 + 0.5 * np.abs(np.sin(t[:stop])))}
     phase = np.linspace(0.0, 1.0, stop + 1)
@@ -136,6 +138,15 @@ def test_every_problem_has_a_figure_and_the_seed_section_is_there(report):
     assert "Headline" in secs and "History across commits" in secs and "Provenance" in secs
     assert "1111111111" in secs["History across commits"]
     assert "Study: flexible-modal" in secs
+
+
+def test_drift_classes_and_orders_are_the_recorded_ones(report):
+    """The report shows what each run recorded; it reconstructs nothing."""
+    out, _ = report
+    problem = sections((out / "report.html").read_text())["Problem: pendulum"]
+    assert "bounded (round-off)" in problem and "linear (p = 1.00)" in problem
+    order_rows = [r for r in problem.split("<tr") if "rattle" in r and "fitted" not in r]
+    assert any("<td>2</td>" in r for r in order_rows)  # the nominal order RATTLE recorded
 
 
 def test_messages_are_escaped_and_failed_runs_show_as_failed(report):

@@ -1,6 +1,7 @@
-"""The batch runner: isolation, fault injection, parallel runs, determinism, resume keys.
+"""The batch on the local pool: isolation, fault injection, parallel runs, determinism,
+resume keys, complete records.
 
-The faulty integrators come from ``tests/plugins/faulty.py``, which the runner's parent and
+The faulty integrators come from ``tests/plugins/faulty.py``, which the batch and its
 workers load when ``DRIFTBENCH_TEST_PLUGINS`` names it.
 """
 
@@ -13,9 +14,10 @@ from pathlib import Path
 import pytest
 
 import integrators
-from benchmarks import suites, worker
-from benchmarks.runner import (ACCURACY_COLUMNS, CODE_VERSION_ENV, InputError, RunSpec,
-                               run_specs, validate)
+from benchmarks import suites
+from benchmarks.batch import run_specs, validate
+from benchmarks.executors import PLUGIN_ENV, Task, load_plugins, pick
+from benchmarks.records import ACCURACY_COLUMNS, CODE_VERSION_ENV, InputError, RunSpec
 from benchmarks.store import load_artifacts, load_runs
 
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
@@ -23,10 +25,10 @@ PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
 
 @pytest.fixture(autouse=True)
 def plugins(monkeypatch):
-    monkeypatch.setenv(worker.PLUGIN_ENV, str(PLUGIN))
+    monkeypatch.setenv(PLUGIN_ENV, str(PLUGIN))
     # Concurrent edits of the working tree must not change run keys within a test.
     monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
-    worker.load_plugins()
+    load_plugins()
 
 
 def accuracy(record) -> dict:
@@ -146,15 +148,42 @@ def test_suite_timeouts_group_overrides_suite(tmp_path):
 def test_runs_of_one_problem_and_method_stay_on_one_worker():
     from collections import deque
 
-    pool = worker.Pool(2)  # no worker starts until tasks are run
-    mine, other = pool.slots
-    mine.affinity = "a"
-    other.task = worker.Task(99, "run", None, None, "busy", "b")
-    other.affinity = "b"
-    queue = deque(worker.Task(i, "run", None, None, str(i), key)
+    queue = deque(Task(i, "run", None, None, str(i), key)
                   for i, key in enumerate(["b", "a", "c", "b", "a"]))
-    # Its own affinity first, wherever it stands in the queue ...
-    assert [pool._pick(mine, queue).id for _ in range(2)] == [1, 4]
+    # A worker whose last run was of affinity "a", while another worker is on "b": its own
+    # affinity first, wherever it stands in the queue ...
+    assert [pick(queue, "a", {"b"}).id for _ in range(2)] == [1, 4]
     # ... then the first task no other worker is on, and only then the rest, in order.
-    mine.affinity = "a-done"
-    assert [pool._pick(mine, queue).id for _ in range(3)] == [2, 0, 3]
+    assert [pick(queue, "a-done", {"b"}).id for _ in range(3)] == [2, 0, 3]
+
+
+def test_the_linear_solver_and_pattern_size_are_recorded(tmp_path):
+    import csv
+
+    records = run_specs([HEALTHY[0]], tmp_path, jobs=1, log=None)
+    row = records[0].row
+    # The trajectory names the linear algebra that ran; a run that does not is a defect.
+    assert isinstance(row["linear_solver"], str) and row["linear_solver"]
+    with open(tmp_path / "runs.csv") as fh:
+        written = next(csv.DictReader(fh))
+    assert written["linear_solver"] == row["linear_solver"]
+    assert written["pattern_nnz"] == ("" if row["pattern_nnz"] is None else str(row["pattern_nnz"]))
+    stored = load_runs(tmp_path / "driftbench.sqlite").iloc[0]
+    assert stored["linear_solver"] == row["linear_solver"]
+
+
+def test_a_run_returns_a_complete_record():
+    """What the store and the report need is known where the run happens."""
+    from benchmarks.drift import SEVERITY, kind_of
+    from benchmarks.execute import build, execute, known
+
+    row = execute(RunSpec("pendulum", "rattle", 0.05, t_end=10.0), repeats=2).row
+    assert row["status"] == "ok"
+    assert row["nominal_order"] == 2 and row["sensitive"] == 0 and row["t0"] == 0.0
+    assert row["energy_scale"] == 9.81  # m g L of the unit pendulum
+    # RATTLE keeps |g| at round-off and the pendulum's energy error bounded.
+    assert kind_of(row["pos_growth"]) == "bounded"
+    assert kind_of(row["energy_growth"]) in SEVERITY
+    assert row["repeats"] == 2 and row["wall_min_s"] <= row["wall_s"] <= row["wall_max_s"]
+    chaotic = RunSpec("double-pendulum:energy=high", "rattle", 0.01)
+    assert known(chaotic, *build(chaotic), None, "v")["sensitive"] == 1

@@ -5,7 +5,8 @@ import pytest
 
 import integrators
 import problems
-from benchmarks.runner import RunSpec, execute
+from benchmarks.execute import execute
+from benchmarks.records import RunSpec
 from integrators import Grid
 
 SPARK = ["rattle", "lobatto3ab2", "lobatto3ab3", "lobatto3ab4"]

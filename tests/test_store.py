@@ -12,18 +12,20 @@ import pandas as pd
 import pytest
 
 from benchmarks import store as store_mod
-from benchmarks.runner import COLUMNS, Record
+from benchmarks.records import COLUMNS, Record
 from benchmarks.store import (SCHEMA_VERSION, Store, StoreError, artifact_table, load_artifacts,
                               load_runs, load_series)
 
 
 def record(problem="pendulum", integrator="rattle", status="ok", run_key=None, **extra):
-    """A synthetic run: 2-D samples, a NaN metric and a JSON column, as the runner writes."""
+    """A synthetic run: 2-D samples, a NaN metric and a JSON column, as a run records them."""
     row = {c: None for c in COLUMNS}
     row.update(problem=problem, integrator=integrator, h=0.01, t_end=10.0, status=status,
                message="" if status == "ok" else "Newton failed at step 3",
                n_steps=1000, max_pos_residual=1.5e-15, rel_energy_error=float("nan"),
-               q_final=json.dumps([0.5, -0.25]), options=json.dumps({"h": 0.01}))
+               q_final=json.dumps([0.5, -0.25]), options=json.dumps({"h": 0.01}),
+               nominal_order=2, sensitive=0, t0=0.0, energy_scale=9.81,
+               linear_solver="dense", pos_growth="bounded (round-off)")
     row["run_key"] = run_key
     row.update(extra)
     t = np.linspace(0.0, 10.0, 11)
@@ -51,8 +53,9 @@ def test_a_run_round_trips_with_provenance_and_series(tmp_path):
     assert "numpy" in json.loads(row["versions"])
     assert row["max_pos_residual"] == 1.5e-15  # stored as float64: bit-exact
     assert np.isnan(row["rel_energy_error"])  # NaN goes in as NULL and comes back missing
-    assert row["nominal_order"] == 2  # RATTLE declares order 2
-    assert row["sensitive"] == 0  # the pendulum is not chaotic
+    # What the run knew comes back as it was recorded.
+    assert row["nominal_order"] == 2 and row["sensitive"] == 0 and row["energy_scale"] == 9.81
+    assert row["linear_solver"] == "dense" and row["pos_growth"] == "bounded (round-off)"
     series = load_series(path, run)
     for group in ("windows", "samples"):
         src = getattr(rec, group)
@@ -63,15 +66,22 @@ def test_a_run_round_trips_with_provenance_and_series(tmp_path):
     assert series["samples"]["q"].shape == (11, 2)
 
 
-def test_chaotic_problems_are_marked(tmp_path):
-    path = tmp_path / "s.sqlite"
-    with Store(path) as st:
-        session = st.begin("unit")
-        st.add(session, record(problem="double-pendulum:energy=high"))
-        st.add(session, record(problem="no-such-problem", status="error"))
-    runs = load_runs(path)
-    assert runs.iloc[0]["sensitive"] == 1
-    assert np.isnan(runs.iloc[1]["sensitive"])  # unknown, not 'not chaotic'
+def test_the_store_writes_records_without_importing_problems_or_integrators(tmp_path):
+    """Layering: the record is complete, so writing and reading it needs no JAX."""
+    code = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {os.path.dirname(__file__)!r})
+        from test_store import record
+        from benchmarks.store import Store, load_runs
+        with Store({str(tmp_path / "s.sqlite")!r}) as st:
+            st.add(st.begin("unit"), record(problem="double-pendulum:energy=high", sensitive=1))
+        assert load_runs({str(tmp_path / "s.sqlite")!r}).iloc[0]["sensitive"] == 1
+        print(sorted(m for m in ("integrators", "problems", "jax") if m in sys.modules))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
 
 
 def test_finished_keys_leave_out_errors_and_timeouts(tmp_path):
@@ -103,7 +113,12 @@ def test_study_tables_and_figures_round_trip(tmp_path):
 
 
 # The schema of version 1 (the first committed store), written by hand as an old file would be.
-V1_COLUMNS = [c for c in COLUMNS if c != "run_key"]
+V1_COLUMNS = ["problem", "integrator", "h", "rtol", "atol", "t_end", "status", "message",
+              "n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves",
+              "wall_s", "setup_s", "max_pos_residual", "max_vel_residual", "max_energy_error",
+              "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
+              "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s",
+              "repeats", "options", "params"]
 V1_SCHEMA = f"""
     CREATE TABLE sessions (id INTEGER PRIMARY KEY, suite TEXT, started REAL, commit_sha TEXT,
                            dirty INTEGER, machine TEXT, python TEXT, versions TEXT);

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import run, worker
-from benchmarks.runner import CODE_VERSION_ENV
+from benchmarks import run
+from benchmarks.executors import PLUGIN_ENV
+from benchmarks.records import CODE_VERSION_ENV
 
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
 GOOD = ["--problems", "pendulum", "--integrators", "rattle"]
@@ -56,6 +57,9 @@ COMMAND_LINES = [
      ["inconsistent initial values", "|g(q0)| = 2.010e-02"]),
     ("suite-and-problems", ["--suite", "seed-sps", *GOOD], ["either --suite or --problems"]),
     ("problems-alone", ["--problems", "pendulum"], ["needs both --problems and --integrators"]),
+    ("cluster-malformed", [*GOOD, "--cluster", "locl:2"], ["cluster 'locl:2'", "local:N"]),
+    ("jobs-and-cluster", [*GOOD, "--jobs", "1", "--cluster", "local:1"],
+     ["either jobs", "or a cluster"]),
 ]
 
 #: (id, suite file text, line the message must name (0: none), words it must hold)
@@ -86,6 +90,8 @@ SUITE_FILES = [
     ("repeats-boolean", 'repeats = true\n[[group]]\nproblems = ["pendulum"]\n'
                         'integrators = ["rattle"]\n', 1, ["'repeats' must be a whole number"]),
     ("empty", 'description = "nothing"\n', 0, ["no [[group]] table and no studies"]),
+    ("cluster-no-workers", 'cluster = "local:0"\n[[group]]\nproblems = ["pendulum"]\n'
+                           'integrators = ["rattle"]\n', 1, ["cluster 'local:0'", "N >= 1"]),
     ("bad-parameter-in-group", '[[group]]\nproblems = ["pendulum:L=-1"]\n'
                                'integrators = ["rattle"]\nh = [0.1]\n', 1,
      ["([[group]] 1)", "pendulum", "L = -1.0", "positive"]),
@@ -94,7 +100,7 @@ SUITE_FILES = [
 
 @pytest.fixture(autouse=True)
 def plugins(monkeypatch):
-    monkeypatch.setenv(worker.PLUGIN_ENV, str(PLUGIN))
+    monkeypatch.setenv(PLUGIN_ENV, str(PLUGIN))
     monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
 
 

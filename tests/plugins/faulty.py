@@ -1,7 +1,7 @@
 """Test-only integrators, a problem and studies that misbehave on purpose (fault injection).
 
-Loaded by the runner's parent and every worker when the environment variable
-``DRIFTBENCH_TEST_PLUGINS`` names this file (``benchmarks.worker.PLUGIN_ENV``); never
+Loaded by the batch and every worker when the environment variable
+``DRIFTBENCH_TEST_PLUGINS`` names this file (``benchmarks.executors.PLUGIN_ENV``); never
 registered otherwise. Each fault is the smallest thing that reproduces one way a real run
 goes wrong:
 
@@ -29,7 +29,7 @@ import pandas as pd
 
 import integrators
 import problems
-from benchmarks import suites
+from benchmarks import batch
 from integrators.base import OK, Integrator, Trajectory
 from problems.case import make_case
 from problems.mechanics import System
@@ -115,5 +115,5 @@ def raising_study(out: Path) -> dict[str, pd.DataFrame]:
     raise RuntimeError("injected fault in a study")
 
 
-suites.STUDIES.update({"test-study": f"{__name__}:good_study",
+batch.STUDIES.update({"test-study": f"{__name__}:good_study",
                        "test-study-raise": f"{__name__}:raising_study"})

@@ -1,4 +1,4 @@
-"""Worker processes: every run executes in a long-lived child process that the parent can kill.
+"""The local engine: every run executes in a long-lived worker process that the parent can kill.
 
 Why processes
 -------------
@@ -38,19 +38,14 @@ code can depend on the cores it sees; accuracy must not depend on ``jobs``).
 Workers die with the parent: on Linux through ``PR_SET_PDEATHSIG`` (so a ``SIGKILL`` of the
 parent leaves no orphan running an endless task), elsewhere through a watchdog thread.
 
-Test-only plugins
------------------
-The environment variable :data:`PLUGIN_ENV` may name Python files (separated by
-``os.pathsep``) that the parent and every worker load before any task, under the module
-name ``driftbench_plugin_<stem>``; the test suite uses it to register integrators that hang,
-crash, raise or return NaN. It is meant for tests only: user-facing names live in the
-registries.
+What a worker does with a task, and the test-only plugins it loads first, are shared with
+the Dask engine (:mod:`benchmarks.executors`), which runs one of these pools on each of its
+workers.
 """
 
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import os
 import signal
 import socket
@@ -62,11 +57,14 @@ import traceback
 from collections import deque
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
-from pathlib import Path
 from typing import Callable, Iterable
 
-#: Environment variable naming test-only plugin files (``os.pathsep``-separated).
-PLUGIN_ENV = "DRIFTBENCH_TEST_PLUGINS"
+import jax
+import jax.numpy as jnp
+
+import problems
+from benchmarks.executors import Outcome, Task, load_plugins, perform, pick
+from integrators.loop import kernel_environment
 
 #: One intra-op thread per worker, so that N jobs on N cores do not oversubscribe.
 THREAD_ENV = {
@@ -86,35 +84,24 @@ STARTUP_LIMIT = 300.0
 MAX_START_FAILURES = 3
 
 
-def load_plugins() -> list[str]:
-    """Load the test-only plugin files named by :data:`PLUGIN_ENV` (once per process)."""
-    loaded = []
-    for entry in filter(None, os.environ.get(PLUGIN_ENV, "").split(os.pathsep)):
-        path = Path(entry)
-        name = f"driftbench_plugin_{path.stem}"
-        if name not in sys.modules:
-            spec = importlib.util.spec_from_file_location(name, path)
-            if spec is None or not path.is_file():
-                raise ValueError(f"{PLUGIN_ENV}: {entry} is not a Python file")
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[name] = module
-            try:
-                spec.loader.exec_module(module)
-            except BaseException:
-                del sys.modules[name]
-                raise
-        loaded.append(name)
-    return loaded
-
-
 def thread_environment() -> dict[str, str]:
     """The environment variables a worker starts with (thread limits added to ours, and
     :data:`integrators.loop.KERNEL_FLAG`, under which XLA compiles our time loops into one
     kernel)."""
-    from integrators.loop import kernel_environment
-
     flags = kernel_environment()["XLA_FLAGS"]
     return {**THREAD_ENV, "XLA_FLAGS": f"{flags} {XLA_THREAD_FLAGS}".strip()}
+
+
+def timing_note(placement: str, repeats: int) -> str:
+    """The report's sentences on timing, given where the workers ran (``placement``)."""
+    load = f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "unknown"
+    return (f"Each run executes in a worker process with one intra-op thread (XLA, BLAS); "
+            f"{placement}. wall_s is the median of up to {repeats} timed repeats of the "
+            f"solve after set-up (wall_min_s and wall_max_s their spread; setup_s, timed "
+            f"once, includes compilation; near zero for a run that reused what an earlier "
+            f"run of the same problem and method compiled in its worker). Not controlled: "
+            f"other processes on the machine and shared caches and memory bandwidth; "
+            f"1-minute load average at the start: {load}.")
 
 
 def usable_cpus() -> list[int]:
@@ -171,46 +158,8 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _warm_up() -> None:
     """Initialise the JAX backend and compile once, so that no task pays the first-use cost."""
-    import jax
-    import jax.numpy as jnp
-
-    import integrators  # noqa: F401  (imports every method module's dependencies)
-    import problems
-
     problems.names()
     jax.block_until_ready(jax.jit(lambda x: x * 2.0 + 1.0)(jnp.ones(3)))
-
-
-def _run_task(payload, phase: Callable[[str], None]):
-    from benchmarks.runner import execute
-
-    spec, repeats, time_limit, grid_options = payload
-    deadline = time.monotonic() + time_limit if time_limit is not None else None
-    return execute(spec, repeats=repeats, grid_options=grid_options, deadline=deadline,
-                   on_phase=phase)
-
-
-def _study_task(payload, phase: Callable[[str], None]):
-    """Run a study ``module:function`` with its output folder; return its tables and SVGs."""
-    name, target, out_dir = payload
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        module, _, func = target.partition(":")
-        phase(f"study {name}")
-        tables = getattr(importlib.import_module(module), func)(out)
-        if not isinstance(tables, dict):
-            raise TypeError(f"study {name!r} returned {type(tables).__name__}, "
-                            f"not a dict of tables")
-        figures = {p.stem: p.read_text() for p in sorted(out.glob("*.svg"))}
-        return {"tables": dict(tables), "figures": figures, "error": None}
-    except Exception as exc:  # a study that raises is recorded, never fatal
-        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        return {"tables": {}, "figures": {}, "error": detail}
-
-
-#: What a worker can do: task kind -> handler(payload, phase) -> picklable result.
-HANDLERS: dict[str, Callable] = {"run": _run_task, "study": _study_task}
 
 
 def serve(fd: int, parent_pid: int, cpu: int) -> None:
@@ -240,7 +189,7 @@ def serve(fd: int, parent_pid: int, cpu: int) -> None:
             return
         kind, task_id, payload = message
         try:
-            result = HANDLERS[kind](payload, lambda text: conn.send(("phase", task_id, text)))
+            result = perform(kind, payload, lambda text: conn.send(("phase", task_id, text)))
             conn.send(("done", task_id, result))
         except Exception as exc:  # a result that cannot be sent, or a defect here
             detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
@@ -250,39 +199,6 @@ def serve(fd: int, parent_pid: int, cpu: int) -> None:
 # ---------------------------------------------------------------------------------------
 # The parent side
 # ---------------------------------------------------------------------------------------
-
-@dataclass
-class Task:
-    """One unit of work: ``kind`` selects the worker's handler (:data:`HANDLERS`).
-
-    Tasks with the same ``affinity`` (such as the runs of one problem and method at
-    several step sizes) go to the same worker where they can, so that they share what it
-    compiled (see :meth:`Pool._pick`).
-    """
-
-    id: int
-    kind: str
-    payload: object
-    time_limit: float | None
-    label: str
-    affinity: object = None
-
-
-@dataclass
-class Outcome:
-    """How a task ended.
-
-    ``state`` is ``"done"`` (``result`` holds the handler's return value), ``"timeout"``
-    (killed at its time limit), ``"died"`` (the worker process ended; ``message`` says how)
-    or ``"fail"`` (the worker could not run or report the task; ``message`` says why).
-    ``phase`` is the last phase the worker announced.
-    """
-
-    state: str
-    result: object = None
-    message: str = ""
-    phase: str = ""
-
 
 @dataclass
 class _Slot:
@@ -305,27 +221,43 @@ class Pool:
     :class:`Outcome` through a callback as soon as it is known.
     """
 
-    def __init__(self, jobs: int):
+    def __init__(self, jobs: int, cpus: list[int] | None = None):
         if jobs < 1:
             raise ValueError(f"jobs = {jobs} must be at least 1")
-        cpus = usable_cpus()
+        self.cpus = usable_cpus() if cpus is None else cpus
         # Every worker is pinned to one core, even a lone one, so that every worker compiles
         # for the same one visible core whatever ``jobs`` is: XLA's CPU code may depend on
         # the cores it sees, and accuracy must not depend on ``jobs``.
         can_pin = hasattr(os, "sched_setaffinity")
-        self.pinned = can_pin and jobs <= len(cpus)
-        self.slots = [_Slot(cpus[i % len(cpus)] if can_pin else None) for i in range(jobs)]
+        self.pinned = can_pin and jobs <= len(self.cpus)
+        self.slots = [_Slot(self.cpus[i % len(self.cpus)] if can_pin else None)
+                      for i in range(jobs)]
         self.start_failures = 0
         self.start_error = ""
+
+    def note(self, repeats: int) -> str:
+        """How this pool keeps wall times honest, in a few sentences for the report."""
+        jobs, cpus = len(self.slots), self.cpus
+        if jobs == 1:
+            placement = f"1 worker process, pinned to core {cpus[0]} of {len(cpus)} usable"
+        elif self.pinned:
+            placement = (f"{jobs} worker processes, each pinned to a core of its own (cores "
+                         f"{', '.join(map(str, cpus[:jobs]))} of {len(cpus)} usable), so no "
+                         f"two runs share a core")
+        else:
+            placement = (f"{jobs} worker processes on {len(cpus)} usable cores: runs share "
+                         f"cores, so wall times are inflated by their neighbours")
+        return timing_note(placement, repeats)
 
     def __enter__(self) -> "Pool":
         return self
 
-    def start(self) -> None:
+    def start(self) -> str:
         """Start every worker now (they import and warm up in the background)."""
         for slot in self.slots:
             if slot.proc is None:
                 self._spawn(slot)
+        return ""
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -334,7 +266,7 @@ class Pool:
         ours, theirs = socket.socketpair()
         env = {**os.environ, **thread_environment(),
                "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-        command = (f"from benchmarks.worker import serve; "
+        command = (f"from benchmarks.pool import serve; "
                    f"serve({theirs.fileno()}, {os.getpid()}, "
                    f"{-1 if slot.cpu is None else slot.cpu})")
         try:
@@ -391,18 +323,9 @@ class Pool:
         return ended, False
 
     def _pick(self, slot: _Slot, queue: deque) -> Task:
-        """Take the next task for ``slot`` off ``queue``: the first with the affinity of the
-        slot's last task; else the first whose affinity no other slot is working on; else
-        the first."""
+        """Take the next task for ``slot`` off ``queue`` (:func:`executors.pick`)."""
         others = {s.affinity for s in self.slots if s is not slot and s.task is not None}
-        tests = ((lambda t: t.affinity is not None and t.affinity == slot.affinity),
-                 (lambda t: t.affinity is None or t.affinity not in others))
-        for test in tests:
-            for i, task in enumerate(queue):
-                if test(task):
-                    del queue[i]
-                    return task
-        return queue.popleft()
+        return pick(queue, slot.affinity, others)
 
     def _assign(self, slot: _Slot, queue: deque, on_start) -> None:
         if slot.done >= MAX_TASKS_PER_WORKER:

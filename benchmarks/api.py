@@ -1,0 +1,102 @@
+"""The Python API: one call runs a sweep and returns its runs as a pandas DataFrame.
+
+::
+
+    from benchmarks.api import sweep
+
+    runs = sweep(["pendulum", my_case], ["rattle", "lobatto3ab3"], h=[0.01, 0.005],
+                 t_end=100.0)
+    runs[["problem", "integrator", "h", "status", "max_pos_residual"]]
+
+It is the command line's batch (:func:`benchmarks.batch.run_specs`) with the same
+isolation, time limits, engines and progress lines; the columns are those of ``runs.csv``
+(:data:`benchmarks.records.COLUMNS`), and the accuracy columns equal the command line's
+for the same runs, bit for bit.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+from typing import Iterable, TextIO
+
+import pandas as pd
+
+from benchmarks.batch import expand, run_specs, user_code
+from benchmarks.records import COLUMNS, InputError
+from problems import Case
+from reports import build as build_report
+
+
+def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
+          h: Iterable[float] = (), rtol: Iterable[float] = (), atol: Iterable[float] = (),
+          t_end: float | None = None, load: Iterable[str] = (), out: str | Path | None = None,
+          report: bool = False, jobs: int | None = None, cluster: str | None = None,
+          timeout: float | None = None, repeats: int = 3,
+          log: TextIO | None = sys.stderr) -> pd.DataFrame:
+    """Run every combination of problems, integrators and settings; return the runs.
+
+    Parameters
+    ----------
+    problems : iterable of str or Case
+        Problem specs (``"pendulum"``, ``"chain:N=16"``, a loaded problem's name) or
+        :class:`problems.Case` objects built with :func:`problems.make_case` (run under
+        their names, which must not be registered problems' names).
+    integrators : iterable of str
+        Integrator specs (``"rattle"``, ``"lobatto3ab3:newton_tol=1e-12"``).
+    h, rtol, atol : iterable of float
+        Step sizes for fixed-step methods; tolerances for adaptive ones. Empty: each
+        method's default.
+    t_end : float, optional
+        The horizon (default: each problem's own).
+    load : iterable of str
+        Files or modules that register problems or integrators (``--load``).
+    out : str or Path, optional
+        Keep ``runs.csv`` and the results store here (default: a temporary folder,
+        removed afterwards).
+    report : bool
+        Also write ``report.md`` and ``report.html`` to ``out`` (which it needs).
+    jobs, cluster : optional
+        The engine: ``jobs`` local worker processes (default: the usable cores) or a Dask
+        cluster (``"local:N"``, ``"tcp://HOST:PORT"``).
+    timeout : float, optional
+        Time limit of each run in seconds (default: one hour).
+    repeats : int
+        Timed solves of each run (``wall_s`` is their median).
+    log : text stream, optional
+        Where one line per finished run goes (None: nowhere).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per run, in the order of the combinations, with the columns of
+        ``runs.csv``. A run that failed is a row with its status and message.
+
+    Raises
+    ------
+    benchmarks.records.InputError
+        Bad input, found before any run starts: unknown names, options out of range,
+        user code that does not load or does not check out (the message names the file
+        and the function).
+    """
+    if report and out is None:
+        raise InputError("report=True needs out= (the folder the report is written to)")
+    problems = list(problems)
+    cases = [p for p in problems if isinstance(p, Case)]
+    specs = [p.name if isinstance(p, Case) else p for p in problems]
+    user_code(load, cases)  # so that expand knows what the user registered
+    try:
+        runs = expand(specs, list(integrators), [float(x) for x in h],
+                      [float(x) for x in rtol], [float(x) for x in atol],
+                      None if t_end is None else float(t_end))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    with tempfile.TemporaryDirectory(prefix="driftbench-sweep-") as tmp:
+        folder = Path(out) if out is not None else Path(tmp)
+        records = run_specs(runs, folder, jobs, cluster=cluster, suite="python-api",
+                            repeats=repeats, timeout=timeout, load=load, cases=cases,
+                            log=log, progress=False)
+        if report:
+            build_report(folder / "driftbench.sqlite", folder)
+    return pd.DataFrame([r.row for r in records], columns=list(COLUMNS))

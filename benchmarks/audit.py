@@ -1,0 +1,115 @@
+"""Checks of user-written physics before any run, and errors explained in one sentence.
+
+:func:`audit` evaluates the functions of a loaded problem's :class:`~problems.System` at its
+initial values, the way the integrators will (under JAX, with autodiff), and refuses what
+would make every run meaningless: a wrong shape, a value that is not finite, a mass matrix
+that is not symmetric positive definite, a function that JAX cannot trace. The message
+names the function, the file and line where it is defined, and what is wrong.
+
+:func:`explain` turns any exception met while building or running user code into one line
+with the user's ``file:line`` and, for JAX's tracer errors, what they mean.
+"""
+
+from __future__ import annotations
+
+import inspect
+import traceback
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import problems
+from benchmarks.records import one_line
+
+#: JAX's errors of a function that uses a traced value as a concrete one, and what to do.
+TRACER_ERRORS = (jax.errors.ConcretizationTypeError, jax.errors.TracerBoolConversionError,
+                 jax.errors.TracerArrayConversionError, jax.errors.TracerIntegerConversionError)
+TRACER_ADVICE = ("it is not traceable by JAX: it converts a traced value to a Python or "
+                 "NumPy one (if/while on q, float(), int(), numpy functions); use jax.numpy "
+                 "and jnp.where instead")
+#: Relative asymmetry of a mass matrix accepted as round-off.
+SYMMETRY_TOL = 1e-12
+
+
+def explain(exc: BaseException) -> str:
+    """One line: the user's ``file:line`` where ``exc`` arose (if in user code), the
+    exception, and the meaning of a JAX tracer error."""
+    where = problems.user_frame(exc, None)
+    if isinstance(exc, TRACER_ERRORS):
+        detail = f"{type(exc).__name__}: {TRACER_ADVICE}"
+    else:
+        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
+    return one_line(f"{where}: {detail}" if where else detail)
+
+
+def _defined(func) -> str:
+    """``file:line`` where ``func`` is defined, or ``""``."""
+    try:
+        return f"{inspect.getsourcefile(func)}:{inspect.getsourcelines(func)[1]}"
+    except (TypeError, OSError):
+        return ""
+
+
+class AuditError(ValueError):
+    """A user function that returns something the integrators cannot use."""
+
+
+def _check(case, label: str, func, call, shape: tuple[int, ...]) -> np.ndarray:
+    """Evaluate ``call()`` (which calls ``func``) and check its shape and finiteness."""
+    where = _defined(func)
+    prefix = f"{where}: " if where else ""
+    what = f"{label} of problem {case.name!r}"
+    try:
+        value = np.asarray(call(), dtype=np.float64)
+    except AuditError:
+        raise
+    except Exception as exc:  # the user's function raised: say where and what
+        raise AuditError(f"{prefix}{what} raised {explain(exc)}") from None
+    if value.shape != shape:
+        raise AuditError(f"{prefix}{what} returns shape {value.shape}, not {shape} "
+                         f"(System n = {case.system.n}, m = {case.system.m})")
+    if not np.all(np.isfinite(value)):
+        raise AuditError(f"{prefix}{what} is not finite at the initial values")
+    return value
+
+
+def audit(case) -> None:
+    """Check the functions of ``case.system`` at ``(t0, q0, v0)``.
+
+    Raises
+    ------
+    AuditError
+        With the function's ``file:line``, the problem and what is wrong, on one line.
+    """
+    s = case.system
+    n, m = s.n, s.m
+    f64 = jnp.float64
+    q, v, t = (jnp.asarray(case.q0, f64), jnp.asarray(case.v0, f64), jnp.asarray(case.t0, f64))
+    if callable(s.mass):
+        M = _check(case, "mass(q)", s.mass, lambda: s.mass(q), (n, n))
+        _check(case, "d mass / dq (autodiff)", s.mass, lambda: jax.jacfwd(s.mass)(q), (n, n, n))
+    else:
+        M = np.asarray(s.mass, dtype=np.float64)
+        M = np.diag(M) if M.ndim == 1 else M
+        if M.shape != (n, n) or not np.all(np.isfinite(M)):
+            raise AuditError(f"mass of problem {case.name!r} has shape {M.shape}, not ({n}, {n})"
+                             f" or ({n},), or is not finite")
+    where = _defined(s.mass) if callable(s.mass) else ""
+    prefix = f"{where}: " if where else ""
+    if np.max(np.abs(M - M.T)) > SYMMETRY_TOL * max(np.max(np.abs(M)), 1.0):
+        raise AuditError(f"{prefix}mass of problem {case.name!r} is not symmetric at q0")
+    if np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) <= 0.0:
+        raise AuditError(f"{prefix}mass of problem {case.name!r} is not positive definite at q0"
+                         f" (smallest eigenvalue {np.min(np.linalg.eigvalsh(M)):.3g})")
+    if s.potential is not None:
+        _check(case, "potential(q)", s.potential, lambda: s.potential(q), ())
+        _check(case, "grad potential (autodiff)", s.potential,
+               lambda: jax.grad(s.potential)(q), (n,))
+    _check(case, "constraints(q, t)", s.constraints, lambda: s.constraints(q, t), (m,))
+    _check(case, "d constraints / dq (autodiff)", s.constraints,
+           lambda: jax.jacfwd(s.constraints, argnums=0)(q, t), (m, n))
+    if s.forces is not None:
+        _check(case, "forces(t, q, v)", s.forces, lambda: s.forces(t, q, v), (n,))
+    for name, func in s.invariants.items():
+        _check(case, f"invariant {name!r}(q, v)", func, lambda: func(q, v), ())

@@ -1,0 +1,266 @@
+"""The Dask engine: a batch's runs on the workers of a ``distributed`` cluster.
+
+``Cluster("local:N")`` starts a :class:`distributed.LocalCluster` of ``N`` worker processes
+on this machine; ``Cluster("tcp://HOST:PORT")`` connects to a running scheduler, whose
+workers (``dask worker tcp://HOST:PORT --nthreads 1``) may be on any machine that has this
+code and its dependencies at the same version (a worker that runs another code version
+gives ``error`` records that say so, never results under the wrong run key).
+
+The semantics are those of the local pool (:mod:`benchmarks.pool`), because each Dask
+worker process runs a pool of one worker process of its own (:class:`_Host`) and every
+task is carried out there:
+
+- **isolation**: a run past its time limit is killed there (``SIGKILL``) and recorded
+  ``timeout``; a run that kills its process is recorded ``error`` with the signal; a Dask
+  worker that dies or leaves the cluster (``SIGKILL``, a lost machine) costs only the run
+  it held, recorded ``error`` with the reason, and its nanny starts a fresh one;
+- **honest wall times**: one run at a time per Dask worker, its process pinned to a core
+  that the worker claims on its machine (a lock file per core, so workers on one machine
+  take different cores while there are enough);
+- **reuse**: a Dask worker keeps its pool process, and with it what it compiled; the runs
+  of one problem and method go to the same worker where they can (this client hands each
+  worker its next task itself, as the local pool does);
+- **one writer**: results come back to this client, which alone writes the store.
+
+Ctrl-C stops the client: every finished run is already stored; runs in flight on a
+``tcp://`` cluster finish or reach their time limit there and are discarded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import logging
+import os
+import queue
+import re
+import socket
+import tempfile
+import threading
+import time
+from collections import deque
+from typing import Callable, Iterable
+
+import distributed
+
+from benchmarks.executors import Outcome, Task, pick
+from benchmarks.pool import STARTUP_LIMIT, Pool, timing_note, usable_cpus
+from benchmarks.records import InputError, one_line, provenance
+
+#: Seconds to wait for a scheduler to answer, and for a cluster to have a worker.
+CONNECT_LIMIT = 30.0
+#: Seconds between looks at the cluster's workers while tasks run.
+POLL = 0.25
+
+
+# ---------------------------------------------------------------------------------------
+# The worker side: one pool process per Dask worker
+# ---------------------------------------------------------------------------------------
+
+_claims: list = []  # the open lock files of this process's claimed cores
+
+
+def claim_core() -> tuple[int, bool]:
+    """A core for this process, and whether it is its own.
+
+    The first usable core whose lock file (in the temporary folder) no other process holds;
+    the lock lasts as long as this process. When every core is taken, a core shared with
+    another worker (the timing note says so).
+    """
+    cpus = usable_cpus()
+    for cpu in cpus:
+        handle = open(os.path.join(tempfile.gettempdir(), f"driftbench-core-{cpu}.lock"), "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _claims.append(handle)
+        return cpu, True
+    return cpus[os.getpid() % len(cpus)], False
+
+
+class _Host:
+    """The pool of one Dask worker process: a thread of its own drives a :class:`Pool` of
+    one worker process, pinned to the claimed core.
+
+    One thread spawns every pool process: Linux ends a child with its parent *thread*
+    (``PR_SET_PDEATHSIG``), so that thread must live as long as the Dask worker.
+    """
+
+    def __init__(self):
+        self.cpu, self.own = claim_core()
+        self.version = provenance()["code_version"]
+        self.requests: queue.Queue = queue.Queue()
+        threading.Thread(target=self._serve, name="driftbench-host", daemon=True).start()
+
+    def _serve(self) -> None:
+        with Pool(1, cpus=[self.cpu]) as pool:
+            pool.start()
+            while True:
+                task, answer = self.requests.get()
+                pool.run([task], lambda t, outcome: answer.put(outcome))
+
+    def perform(self, task: Task) -> Outcome:
+        answer: queue.Queue = queue.Queue(maxsize=1)
+        self.requests.put((task, answer))
+        return answer.get()
+
+    def describe(self) -> dict:
+        return {"host": socket.gethostname(), "cpu": self.cpu, "own": self.own,
+                "version": self.version}
+
+
+_host: _Host | None = None
+_host_lock = threading.Lock()
+
+
+def _start_host() -> dict:
+    """Start this Dask worker's pool (once); say where it runs."""
+    global _host
+    with _host_lock:
+        if _host is None:
+            _host = _Host()
+        return _host.describe()
+
+
+def _perform(task: Task, version: str) -> Outcome:
+    """Carry out ``task`` in this Dask worker's pool, if it runs code version ``version``."""
+    where = _start_host()
+    if where["version"] != version:
+        return Outcome("fail", message=f"the Dask worker on {where['host']} runs code version "
+                                       f"{where['version']}, this batch {version}")
+    return _host.perform(task)
+
+
+# ---------------------------------------------------------------------------------------
+# The client side
+# ---------------------------------------------------------------------------------------
+
+def parse(address: str) -> tuple[int | None, str | None]:
+    """``(N, None)`` for ``local:N``, ``(None, address)`` for ``tcp://HOST:PORT``."""
+    local = re.fullmatch(r"local:(\d+)", address.strip())
+    if local and int(local.group(1)) >= 1:
+        return int(local.group(1)), None
+    if re.fullmatch(r"tcp://[^\s:/]+:\d+", address.strip()):
+        return None, address.strip()
+    raise InputError(f"cluster {address!r}: must be local:N (N >= 1 workers on this machine) "
+                     f"or tcp://HOST:PORT (a running Dask scheduler)")
+
+
+class Cluster:
+    """The Dask engine (:class:`benchmarks.executors.Executor`) on ``address``."""
+
+    def __init__(self, address: str):
+        self.workers, self.address = parse(address)
+        self.local: distributed.LocalCluster | None = None
+        self.client: distributed.Client | None = None
+        self.hosts: dict[str, dict] = {}
+
+    def __enter__(self) -> "Cluster":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def start(self) -> str:
+        """Start or reach the cluster and each worker's pool; return the dashboard's address."""
+        try:
+            if self.workers is not None:
+                # One thread per worker: a worker runs one run at a time, in its pool.
+                self.local = distributed.LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True,
+                    host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                    silence_logs=logging.ERROR)
+                self.client = distributed.Client(self.local, timeout=CONNECT_LIMIT)
+            else:
+                self.client = distributed.Client(self.address, timeout=CONNECT_LIMIT)
+            self.client.wait_for_workers(1, timeout=CONNECT_LIMIT)
+            self.hosts = self.client.run(_start_host)
+        except (OSError, TimeoutError) as exc:
+            self.close()
+            where = self.address or f"local:{self.workers}"
+            raise InputError(one_line(f"cluster {where}: cannot start or reach it, or it has "
+                                      f"no worker: {type(exc).__name__}: {exc}")) from None
+        return (f"Dask cluster {self.client.scheduler.address} with {len(self.hosts)} "
+                f"workers; dashboard: {self.client.dashboard_link}")
+
+    def note(self, repeats: int) -> str:
+        hosts = sorted({h["host"] for h in self.hosts.values()})
+        shared = any(not h["own"] for h in self.hosts.values())
+        placement = (f"{len(self.hosts)} Dask workers on {len(hosts)} machine(s) "
+                     f"({', '.join(hosts)}), each running one run at a time in a process of "
+                     f"its own pinned to one core; "
+                     + ("some workers share a core, so wall times are inflated by their "
+                        "neighbours" if shared else "no two workers on a machine share a core"))
+        return timing_note(placement, repeats)
+
+    def run(self, tasks: Iterable[Task], report: Callable[[Task, Outcome], None],
+            on_start: Callable[[Task], None] | None = None) -> None:
+        """Run ``tasks``, one at a time per worker; report each as it ends."""
+        version = provenance()["code_version"]
+        queue_ = deque(tasks)
+        running: dict[distributed.Future, tuple[Task, str]] = {}
+        last: dict[str, object] = {}  # worker -> affinity of its last task
+        alone_since = time.monotonic()
+        try:
+            while queue_ or running:
+                workers = set(self.client.nthreads())
+                busy = {w for _, w in running.values()}
+                for worker in sorted(workers - busy):
+                    if not queue_:
+                        break
+                    task = pick(queue_, last.get(worker),
+                                {t.affinity for t, _ in running.values()})
+                    future = self.client.submit(
+                        _perform, task, version, workers=[worker], allow_other_workers=False,
+                        pure=False, key=f"driftbench-{task.id}-{time.time_ns()}")
+                    running[future] = (task, worker)
+                    last[worker] = task.affinity
+                    if on_start is not None:
+                        on_start(task)
+                if running:
+                    with contextlib.suppress(TimeoutError):
+                        distributed.wait(list(running), timeout=POLL,
+                                         return_when="FIRST_COMPLETED")
+                else:
+                    time.sleep(POLL)
+                for future in [f for f in running if f.done()]:
+                    task, worker = running.pop(future)
+                    report(task, _outcome(future, worker))
+                gone = set(self.client.nthreads())
+                for future, (task, worker) in list(running.items()):
+                    if worker not in gone:
+                        future.cancel()
+                        del running[future]
+                        report(task, Outcome("died", message=f"the Dask worker {worker} left "
+                                             f"the cluster (killed, crashed or lost)",
+                                             phase="its run"))
+                if gone:
+                    alone_since = time.monotonic()
+                elif time.monotonic() - alone_since > STARTUP_LIMIT:
+                    while queue_:
+                        report(queue_.popleft(), Outcome("fail", message=(
+                            f"the cluster had no worker for {STARTUP_LIMIT:g} s")))
+        finally:
+            for future in running:
+                future.cancel()
+
+    def close(self) -> None:
+        """Disconnect; stop the workers of a cluster this engine started."""
+        if self.client is not None:
+            with contextlib.suppress(Exception):  # closing what may already be gone
+                self.client.close()
+        if self.local is not None:
+            with contextlib.suppress(Exception):
+                self.local.close()
+        self.client = self.local = None
+
+
+def _outcome(future: distributed.Future, worker: str) -> Outcome:
+    """How a finished Dask future's task ended."""
+    try:
+        return future.result()
+    except Exception as exc:  # the task could not be carried out on the worker
+        return Outcome("fail", message=one_line(
+            f"Dask worker {worker}: {type(exc).__name__}: {exc}"))

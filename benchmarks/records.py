@@ -1,0 +1,221 @@
+"""What every layer agrees on about a run: its spec, its record, its identity, its provenance.
+
+- :class:`RunSpec`: one run as asked for (problem spec, integrator spec, setting, horizon);
+- :class:`Record`: one run as it ended, complete: its ``runs.csv`` row (:data:`COLUMNS`),
+  its drift series and its sampled states. Everything a later stage needs to know about a
+  run (nominal order, sensitivity, energy scale, ``t0``, the linear solver, the sampling,
+  the drift classes) is a column, filled where the run happens, so that the store and the
+  reports never rebuild a problem or an integrator;
+- :func:`identity`: what names a run across invocations and commits (problem, integrator,
+  setting, horizon), the one text that the progress log, the drift gate and the report use;
+  :func:`run_key` adds the fully resolved parameters and options and the code version, for
+  resuming;
+- :func:`provenance`: the commit, whether the working tree differs from it, the code
+  version, the machine and the package versions;
+- :class:`InputError`: bad input, reported on one line before any run starts.
+
+This module imports neither JAX nor an integrator nor a problem.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import os
+import platform
+import subprocess
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+#: Columns of runs.csv, in order (design notes, section 6, then the work counters, what
+#: the run knew about its case and method, its drift classes and the resume key).
+COLUMNS = (
+    "problem", "integrator", "h", "rtol", "atol", "t_end", "status", "message",
+    "n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves",
+    "wall_s", "setup_s", "max_pos_residual", "max_vel_residual", "max_energy_error",
+    "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
+    "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
+    "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
+    "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
+    "energy_growth",
+)
+
+#: The columns that depend on what was computed and not on how long it took: equal, bit for
+#: bit, for the same run on the same machine whatever engine or ``jobs`` ran it.
+ACCURACY_COLUMNS = (
+    "status", "message", "n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
+    "n_lin_solves", "max_pos_residual", "max_vel_residual", "max_energy_error",
+    "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
+    "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
+    "pos_growth", "energy_growth",
+)
+
+#: Columns that hold text; every other column holds a number or nothing.
+TEXT_COLUMNS = ("problem", "integrator", "status", "message", "q_final", "v_final",
+                "invariant_errors", "sampling", "options", "params", "run_key",
+                "linear_solver", "pos_growth", "energy_growth")
+
+#: Columns that hold whole numbers (pandas reads them as floats where some are empty).
+WHOLE_COLUMNS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
+                 "n_lin_solves", "fail_step", "repeats", "pattern_nnz", "nominal_order",
+                 "sensitive")
+
+#: Environment variable that pins the code version (see :func:`provenance`).
+CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
+
+#: Distributions whose versions are recorded with every invocation.
+PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
+            "pandas", "matplotlib", "dask", "distributed")
+
+
+class InputError(ValueError):
+    """Bad input found before any run starts: the message names what and where, on one line."""
+
+
+def one_line(text) -> str:
+    """``text`` with its line breaks folded, for one-line error messages."""
+    return " ".join(str(text).split())
+
+
+def number(x) -> str:
+    """A setting as text: exact (the shortest text that reads back as the same float), and
+    without a trailing ``.0``, so ``0.01``, ``1e-08`` and ``20`` read as they were written."""
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def _missing(value) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def setting(h=None, rtol=None, atol=None) -> str:
+    """The swept setting of a run: its step size, or its tolerances, or ``defaults``."""
+    if not _missing(h):
+        return f"h={number(h)}"
+    parts = [f"{k}={number(v)}" for k, v in (("rtol", rtol), ("atol", atol)) if not _missing(v)]
+    return " ".join(parts) or "defaults"
+
+
+def identity(row) -> str:
+    """The identity of a run: ``problem / integrator / setting / t_end=...``.
+
+    ``row`` is anything with ``get`` (a ``runs.csv`` row, a stored row as pandas gives it,
+    where a missing value is NaN) or a :class:`RunSpec`. Runs of the same identity are the
+    same experiment, whatever commit or engine ran them: the drift gate matches runs to its
+    baseline by it and the report shows the latest run of each.
+    """
+    get = row.get if hasattr(row, "get") else lambda k: getattr(row, k, None)
+    t_end = get("t_end")
+    horizon = "t_end=default" if _missing(t_end) else f"t_end={number(t_end)}"
+    return (f"{get('problem')} / {get('integrator')} / "
+            f"{setting(get('h'), get('rtol'), get('atol'))} / {horizon}")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: a problem spec, an integrator spec and the settings that vary in sweeps.
+
+    ``timeout`` is the run's time limit in seconds (``None``: the batch default); ``origin``
+    says where the run was asked for (a suite file and line), for error messages. Neither
+    takes part in comparisons.
+    """
+
+    problem: str
+    integrator: str
+    h: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    t_end: float | None = None
+    timeout: float | None = field(default=None, compare=False)
+    origin: str = field(default="", compare=False)
+
+    def label(self) -> str:
+        """The run's :func:`identity`, for progress lines and messages."""
+        return identity(self)
+
+
+@dataclass
+class Record:
+    """A finished run: its ``runs.csv`` row and its drift series and samples."""
+
+    row: dict
+    windows: dict[str, np.ndarray] = field(default_factory=dict)
+    samples: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def blank_row(spec: RunSpec, **values) -> dict:
+    """A ``runs.csv`` row of ``spec`` with ``values`` and nothing else filled in."""
+    row = dict.fromkeys(COLUMNS)
+    row.update(problem=spec.problem, integrator=spec.integrator, h=spec.h, rtol=spec.rtol,
+               atol=spec.atol, t_end=spec.t_end)
+    row.update(values)
+    return row
+
+
+def _plain(value):
+    """A JSON-able form of a parameter or option value (exact for floats)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return repr(value)
+
+
+def run_key(resolved: dict, version: str) -> str:
+    """A stable hash of everything that determines a run's results.
+
+    ``resolved`` holds the problem's name and fully resolved parameters, the integrator's
+    registry key and every option, ``t_end`` and the recording grid; ``version`` is the
+    code version (:func:`provenance`). Floats enter by their shortest round-trip text, so
+    equal values give equal keys.
+    """
+    text = json.dumps({**resolved, "code": version}, sort_keys=True, default=_plain,
+                      allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _git(*args) -> bytes:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return b""
+
+
+@functools.lru_cache(maxsize=1)
+def _machine() -> dict[str, str]:
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    machine = " ".join(x for x in (platform.node(), platform.system(), platform.machine(),
+                                   f"{os.cpu_count()} CPUs") if x)
+    return {"machine": machine, "python": platform.python_version(),
+            "versions": json.dumps(versions)}
+
+
+def provenance() -> dict[str, object]:
+    """What code runs, and where.
+
+    ``commit`` (``None`` outside a git checkout); ``dirty``: whether the tracked files
+    differ from that commit; ``code_version``: the commit, plus a hash of the difference
+    when dirty, so two edits of the same commit have different versions (run keys include
+    it: a resumed sweep never mixes results of different code). :data:`CODE_VERSION_ENV`
+    overrides the code version: to resume a sweep across an edit known not to change
+    results, or to give a test a version that concurrent edits do not change. Then
+    ``machine``, ``python`` and ``versions`` (JSON of :data:`PACKAGES`).
+    """
+    commit = _git("rev-parse", "HEAD").decode().strip() or None
+    diff = _git("diff", "HEAD", "--no-ext-diff", "--binary")
+    version = commit or "unknown"
+    if diff:
+        version = f"{version}+{hashlib.sha256(diff).hexdigest()[:12]}"
+    return {"commit": commit, "dirty": bool(diff),
+            "code_version": os.environ.get(CODE_VERSION_ENV) or version, **_machine()}
