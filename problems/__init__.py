@@ -44,7 +44,8 @@ REGISTRY: dict[str, Callable[..., Case]] = {}
 _MODULES = (
     "problems.pendulum", "problems.sps_receiver", "problems.flexible_spacecraft",
     "problems.andrews", "problems.car_axis", "problems.double_pendulum", "problems.chain",
-    "problems.four_bar", "problems.sps_ring", "problems.rigid_body", "problems.bricard",
+    "problems.four_bar", "problems.sps_ring", "problems.sps_lattice", "problems.rigid_body",
+    "problems.bricard",
 )
 
 

@@ -13,6 +13,7 @@ from problems.case import project, residuals
 LIBRARY = [
     "andrews", "car-axis", "double-pendulum", "chain:N=5", "four-bar:N=3", "bricard",
     "rigid-body", "sps-ring:N=5", "sps-ring:N=4,coriolis=true,perturb=0.1,seed=3",
+    "sps-lattice:N=3,K=3", "sps-lattice:N=4,K=2,coriolis=true,perturb=0.1,seed=3",
 ]
 
 
@@ -44,7 +45,7 @@ def case(request):
 
 def test_every_module_registers_its_problem():
     assert {"andrews", "car-axis", "double-pendulum", "chain", "four-bar", "bricard",
-            "rigid-body", "sps-ring"} <= set(problems.names())
+            "rigid-body", "sps-ring", "sps-lattice"} <= set(problems.names())
 
 
 def test_initial_values_are_consistent_without_projection(case):
