@@ -44,7 +44,7 @@ What each number is
         seconds (at most :data:`MAX_REPEATS`), fewer once they total
         :data:`REPEAT_BUDGET` seconds (:func:`more`). Each process runs with one intra-op
         thread (the benchmark workers' settings,
-        :func:`benchmarks.worker.thread_environment`); C is single-threaded.
+        :func:`benchmarks.pool.thread_environment`); C is single-threaded.
     Newton iterations per step
         the trajectory's ``n_newton`` over its steps (IDA: nonlinear iterations per
         internal step; ``baumgarte-rk4`` has none).
@@ -217,7 +217,7 @@ def point_main(argv: list[str]) -> int:
     try:
         import integrators
         import problems
-        from benchmarks.worker import load_plugins
+        from benchmarks.executors import load_plugins
         from integrators.base import Grid
 
         load_plugins()
@@ -669,16 +669,17 @@ def settings_of(args) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks import worker
+    from benchmarks.executors import load_plugins
+    from benchmarks.pool import thread_environment
 
     args = parser().parse_args(argv)
     try:
-        worker.load_plugins()
+        load_plugins()
         settings = settings_of(args)
     except ValueError as exc:
         print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_INPUT
-    env = {**os.environ, **worker.thread_environment()}
+    env = {**os.environ, **thread_environment()}
     started = time.time()
     load_before = os.getloadavg()[0]
     ok = True

@@ -12,7 +12,8 @@ import pytest
 
 import integrators
 import problems
-from benchmarks.runner import RunSpec, execute
+from benchmarks.execute import execute
+from benchmarks.records import RunSpec
 from integrators import Grid
 from integrators.genalpha import Coefficients
 from problems import SpecError

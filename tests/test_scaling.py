@@ -14,7 +14,7 @@ import integrators
 import problems
 from benchmarks import scaling
 from benchmarks.scaling import C_NAME, Point, bars, fit_exponent
-from benchmarks.worker import PLUGIN_ENV
+from benchmarks.executors import PLUGIN_ENV
 from integrators.base import Grid
 
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
