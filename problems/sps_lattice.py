@@ -52,9 +52,10 @@ would turn into a uniform drift along the axis. Holding the centres of the first
 last ring on the axis (a shaft with a bearing at each end) and the first one at height
 zero removes exactly these: (i) moves both centres, (ii) moves the last one relative to
 the first, (iii) lifts the first. The rotation about ``z`` stays free: it is the motion
-whose momentum is conserved. Every hub row is unchanged by a rotation about ``z`` and by
-time, so the constraint forces do no work and exert no torque about the axis, and both
-invariants below survive. For ``K = 1`` the hub is the centre-of-mass row pair of
+whose momentum is conserved. A rotation about ``z`` turns the centres' ``x, y`` rows into
+combinations of themselves and leaves the height row as it is, and no row depends on
+time, so the hub forces do no work and exert no torque about the axis: both invariants
+below survive. For ``K = 1`` the hub is the centre-of-mass row pair of
 :mod:`problems.sps_ring` followed by the height row; the tilt of a single flat ring is
 stable (its curvature is ``w^2 sum m rho^2 / 2 > 0``) and is left free.
 

@@ -1,4 +1,5 @@
-"""Shared helpers of the problem tests: one run, and its error against the reference."""
+"""Shared helpers of the problem tests: one run, its error against the reference, and the
+receiver ring state built from the reduced model's radii."""
 
 import numpy as np
 
@@ -21,3 +22,13 @@ def state_error(case, traj):
     """Max-norm error of the final ``(q, v)`` against the case's reference."""
     q_ref, v_ref = case.reference.solution(traj.t_final)
     return max(np.max(np.abs(traj.q_final - q_ref)), np.max(np.abs(traj.v_final - v_ref)))
+
+
+def embed(samples, N):
+    """The ring state whose every point sits on its ray at the reduced model's radii."""
+    angles = np.pi * np.arange(2 * N) / N
+    inner = np.arange(2 * N) % 2 == 0
+    radius = np.where(inner, samples["q"][:, [1]], samples["q"][:, [0]])
+    rate = np.where(inner, samples["v"][:, [1]], samples["v"][:, [0]])
+    ray = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    return radius[..., None] * ray, rate[..., None] * ray

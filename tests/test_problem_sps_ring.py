@@ -6,6 +6,7 @@ import pytest
 
 import integrators
 import problems
+from helpers import embed
 from integrators import Grid
 
 
@@ -14,16 +15,6 @@ def run(spec, key, h, t_end=50.0):
     traj = integrators.make(key, h=h).prepare(case, Grid(case.t0, case.t_end))()
     assert traj.status == "ok", traj.message
     return case, traj
-
-
-def embed(samples, N):
-    """The ring state whose every point sits on its ray at the reduced model's radii."""
-    angles = np.pi * np.arange(2 * N) / N
-    inner = np.arange(2 * N) % 2 == 0
-    radius = np.where(inner, samples["q"][:, [1]], samples["q"][:, [0]])
-    rate = np.where(inner, samples["v"][:, [1]], samples["v"][:, [0]])
-    ray = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    return radius[..., None] * ray, rate[..., None] * ray
 
 
 @pytest.mark.parametrize("key, h", [("rattle", 0.05), ("lobatto3ab3", 0.1)])
