@@ -89,6 +89,10 @@ class _Host:
     """
 
     def __init__(self):
+        # A Dask nanny starts its worker with a low malloc trim threshold; inherited by the
+        # pool process it slows compilation by about 10 %, and set-up times would differ
+        # from the local pool's.
+        os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
         self.cpu, self.own = claim_core()
         self.version = provenance()["code_version"]
         self.requests: queue.Queue = queue.Queue()
