@@ -358,12 +358,13 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     # The workers import and warm up while the runs are validated; no run starts before
     # validation has passed, and bad input stops them unused.
     with executor:
-        said = executor.start()
-        if said and log is not None:
-            print(said, file=log, flush=True)
+        executor.start()
         version = provenance()["code_version"]
         keyed = version + _digest(loaded, blobs)
         fixed = validate(specs, keyed, grid_options)
+        said = executor.ready()
+        if said and log is not None:
+            print(said, file=log, flush=True)
         out = Path(out)
         try:
             out.mkdir(parents=True, exist_ok=True)

@@ -89,6 +89,10 @@ class _Host:
     """
 
     def __init__(self):
+        # A Dask nanny starts its worker with a low malloc trim threshold; inherited by the
+        # pool process it slows compilation by about 10 %, and set-up times would differ
+        # from the local pool's.
+        os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
         self.cpu, self.own = claim_core()
         self.version = provenance()["code_version"]
         self.requests: queue.Queue = queue.Queue()
@@ -156,6 +160,8 @@ class Cluster:
         self.local: distributed.LocalCluster | None = None
         self.client: distributed.Client | None = None
         self.hosts: dict[str, dict] = {}
+        self._starting: threading.Thread | None = None
+        self._failure = ""
 
     def __enter__(self) -> "Cluster":
         return self
@@ -163,8 +169,14 @@ class Cluster:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def start(self) -> str:
-        """Start or reach the cluster and each worker's pool; return the dashboard's address."""
+    def start(self) -> None:
+        """Start or reach the cluster, and each worker's pool, in the background (while the
+        batch validates its input)."""
+        self._starting = threading.Thread(target=self._connect, name="driftbench-connect",
+                                          daemon=True)
+        self._starting.start()
+
+    def _connect(self) -> None:
         try:
             if self.workers is not None:
                 # One thread per worker: a worker runs one run at a time, in its pool.
@@ -177,11 +189,17 @@ class Cluster:
                 self.client = distributed.Client(self.address, timeout=CONNECT_LIMIT)
             self.client.wait_for_workers(1, timeout=CONNECT_LIMIT)
             self.hosts = self.client.run(_start_host)
-        except (OSError, TimeoutError) as exc:
+        except Exception as exc:  # reported by ready(), in the batch's thread
+            self._failure = f"{type(exc).__name__}: {exc}"
+
+    def ready(self) -> str:
+        """Wait for the cluster; return its scheduler's and dashboard's addresses."""
+        self._starting.join()
+        if self._failure:
             self.close()
             where = self.address or f"local:{self.workers}"
             raise InputError(one_line(f"cluster {where}: cannot start or reach it, or it has "
-                                      f"no worker: {type(exc).__name__}: {exc}")) from None
+                                      f"no worker: {self._failure}"))
         return (f"Dask cluster {self.client.scheduler.address} with {len(self.hosts)} "
                 f"workers; dashboard: {self.client.dashboard_link}")
 
@@ -248,6 +266,8 @@ class Cluster:
 
     def close(self) -> None:
         """Disconnect; stop the workers of a cluster this engine started."""
+        if self._starting is not None:
+            self._starting.join()
         if self.client is not None:
             with contextlib.suppress(Exception):  # closing what may already be gone
                 self.client.close()

@@ -77,9 +77,13 @@ class Outcome:
 class Executor(Protocol):
     """An engine: started once, runs batches of tasks, closed once (a context manager)."""
 
-    def start(self) -> str:
-        """Start the workers (they may warm up while the batch validates its input); return
-        what the user should know about them (a dashboard's address), or ``""``."""
+    def start(self) -> None:
+        """Start the workers, without waiting for them (they warm up while the batch
+        validates its input)."""
+
+    def ready(self) -> str:
+        """Wait until the engine can take tasks; return what the user should know about it
+        (a dashboard's address), or ``""``. Raises ``InputError`` when it cannot start."""
 
     def run(self, tasks: Iterable[Task], report: Callable[[Task, Outcome], None],
             on_start: Callable[[Task], None] | None = None) -> None:

@@ -252,11 +252,15 @@ class Pool:
     def __enter__(self) -> "Pool":
         return self
 
-    def start(self) -> str:
+    def start(self) -> None:
         """Start every worker now (they import and warm up in the background)."""
         for slot in self.slots:
             if slot.proc is None:
                 self._spawn(slot)
+
+    def ready(self) -> str:
+        """The pool takes tasks at once (a worker that is still warming up gets its task
+        when it is ready)."""
         return ""
 
     def __exit__(self, *exc) -> None:

@@ -26,8 +26,11 @@ from benchmarks.store import load_runs
 
 ROOT = Path(__file__).resolve().parent.parent
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
+#: A built-in problem and a user's (loaded from the example file by the client and by
+#: every worker).
 HEALTHY = [RunSpec("pendulum", "rattle", 0.05, t_end=1.0),
-           RunSpec("sps-receiver", "lobatto3ab2", 0.1, t_end=2.0)]
+           RunSpec("slider-crank", "lobatto3ab2", 0.1, t_end=1.0)]
+SLIDER = str(ROOT / "examples" / "slider_crank.py")
 
 
 @pytest.fixture(autouse=True)
@@ -50,7 +53,8 @@ def integrity(db: Path) -> str:
 def test_a_local_cluster_isolates_faults_and_matches_the_local_pool(tmp_path):
     specs = [HEALTHY[0], RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
              RunSpec("pendulum", "test-kill", 0.1, t_end=1.0), HEALTHY[1]]
-    records = run_specs(specs, tmp_path / "dask", cluster="local:2", timeout=300.0, log=None)
+    records = run_specs(specs, tmp_path / "dask", cluster="local:2", timeout=300.0,
+                        load=[SLIDER], log=None)
     status = {r.row["integrator"]: r.row["status"] for r in records}
     assert status == {"rattle": "ok", "test-hang": "timeout", "test-kill": "error",
                       "lobatto3ab2": "ok"}
@@ -64,7 +68,7 @@ def test_a_local_cluster_isolates_faults_and_matches_the_local_pool(tmp_path):
 
     # The same runs in the local pool, bit for bit: each ran in a pool process pinned to
     # one core with the same thread settings, so nothing may differ.
-    alone = run_specs(HEALTHY, tmp_path / "pool", jobs=1, log=None)
+    alone = run_specs(HEALTHY, tmp_path / "pool", jobs=1, load=[SLIDER], log=None)
     assert [accuracy(r) for r in records if r.row["status"] == "ok"] == \
         [accuracy(r) for r in alone]
 
@@ -150,13 +154,13 @@ def test_a_scheduler_and_workers_survive_a_killed_worker_and_resume(tmp_path, sc
     # Nothing that finished before the kill is lost or changed, and every run has a row.
     assert [row[:2] for row in after[:len(before)]] == before
     assert len(after) == 5
-    by_integrator = {}
-    for _, status, message, integrator in after:
-        by_integrator.setdefault(integrator, []).append(status)
-    assert by_integrator["test-hang"] == ["timeout"]
     lost = [row for row in after if row[1] == "error"]
-    # The killed worker held at most one run; it is recorded with the reason.
+    # The killed worker held at most one run; it is recorded with the reason. The hang,
+    # unless it was that run, reached its time limit on the other worker.
     assert len(lost) <= 1 and all("left the cluster" in row[2] for row in lost)
+    hang = next(row for row in after if row[3] == "test-hang")
+    assert hang[1] == "timeout" or hang in lost
+    unfinished = sum(row[1] in ("error", "timeout") for row in after)
 
     # --resume on the surviving worker runs again only what did not finish.
     second = subprocess.run([*command, "--resume"], cwd=ROOT, capture_output=True, text=True,
@@ -166,4 +170,4 @@ def test_a_scheduler_and_workers_survive_a_killed_worker_and_resume(tmp_path, sc
         rows = list(csv.DictReader(fh))
     assert sorted(r["status"] for r in rows) == ["ok"] * 4 + ["timeout"]
     redone = stored(db, "SELECT integrator FROM runs WHERE session = 2")
-    assert len(redone) == len(lost) + 1  # the lost run, and the timeout (unfinished)
+    assert len(redone) == unfinished  # the lost run and the timeout, nothing finished
