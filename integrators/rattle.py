@@ -54,14 +54,17 @@ class Rattle(Integrator):
         Max-norm residual tolerance of the position projection; the default 1e-16 iterates to
         round-off (see :func:`integrators.newton.newton`).
     newton_max_iter : int
-        Newton iteration limit per step; exceeding it fails the run.
+        Newton iteration limit per step; exceeding it fails the run. The structured path's
+        simplified Newton converges linearly, slowly where the constraint forces are large
+        (on sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
+        forces peak, it needed more than 20 iterations), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
         How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
     """
 
     h: float = 0.01
     newton_tol: float = 1e-16
-    newton_max_iter: int = 20
+    newton_max_iter: int = 50
     linear_solver: str = "auto"
 
     @property

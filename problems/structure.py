@@ -47,8 +47,9 @@ below ``m`` (redundant constraints, or a singular configuration). The dense path
 the *basic* solution by QR with column pivoting of the equilibrated system
 (:func:`basic_solve`): for a consistent system an exact solution, whose multipliers give the
 same, unique constraint force ``G^T lambda`` as any other. The structured paths report the
-deficiency instead (``ok`` false in the factor): the step fails with that message, and the
-user can run the dense path, which handles it.
+deficiency and hand the solve to the dense path's policy for up to :data:`FALLBACK_MAX`
+constraints (forming ``G`` densely for that step only); above that the step fails with
+that message.
 """
 
 from __future__ import annotations
@@ -83,6 +84,11 @@ BAND_MAX = 16
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
 #: the dense border of the banded solver.
 BORDER_MIN = 32
+
+#: Largest number of constraints for which a structured solver that finds ``S`` singular
+#: falls back to the dense rank-revealing solve (dense ``S`` and ``G``: 0.3 GB at 4096
+#: constraints and 8192 coordinates); larger systems fail the step instead.
+FALLBACK_MAX = 4096
 
 #: Names a run may ask for.
 KINDS = ("auto", "dense", "banded", "superlu")
@@ -338,11 +344,16 @@ def small_cho_solve(L: jax.Array, r: jax.Array) -> jax.Array:
 
 # --- the solvers --------------------------------------------------------------------------------
 class Factor(NamedTuple):
-    """A factorised ``S``: the solver's arrays, ``||S||_inf`` (bounded above) and ``ok``."""
+    """A factorised ``S``: the solver's arrays, ``||S||_inf`` (bounded above), whether ``S``
+    can be solved with (``ok``), whether the structured factor itself is regular, and the
+    point ``(q, t)`` it was taken at (for the dense fallback)."""
 
     data: Any
     norm: jax.Array
     ok: jax.Array
+    regular: jax.Array = True
+    q: Any = None
+    t: Any = None
 
 
 class Schur:
@@ -371,6 +382,20 @@ class Schur:
     def solve(self, F: Factor, rhs: jax.Array) -> jax.Array:
         """``S^{-1} rhs`` for a vector or an ``(m, k)`` matrix of columns."""
         return spd_solve(F.data, rhs)
+
+    def checked(self, data, norm, regular, q, t) -> Factor:
+        """A structured factor: solvable if regular, or if the dense fallback may take over."""
+        ok = regular | (self.mech.m <= FALLBACK_MAX)
+        return Factor(data, norm, ok, regular, q, t)
+
+    def fallback(self, F: Factor, out: jax.Array, rhs: jax.Array) -> jax.Array:
+        """``out`` where the structured factor is regular; else the dense policy's solution
+        (for at most :data:`FALLBACK_MAX` constraints), or not-finite values."""
+        if self.mech.m > FALLBACK_MAX:
+            return jnp.where(F.regular, out, jnp.nan)
+        dense = Schur(self.mech)
+        return jax.lax.cond(F.regular, lambda: out,
+                            lambda: dense.solve(dense.factor(F.q, F.t), rhs))
 
 
 class Pattern:
@@ -490,7 +515,8 @@ class Banded(Schur):
         norm = jnp.max(jnp.sum(absband, 1) - absband[:, 0]
                        + sum(padded[k:k + mc, k] for k in range(w + 1)))
         if nb == 0:
-            return Factor((L, Dc, None, None, None, None), norm, ok & jnp.all(jnp.isfinite(L)))
+            return self.checked((L, Dc, None, None, None, None), norm,
+                                ok & jnp.all(jnp.isfinite(L)), q, t)
         Gb = gather(Gx, border_index)                             # (nb, n)
         MinvGbT = (Gb * dinv[None, :]).T                          # (n, nb)
         Scb = jnp.einsum("ir,irb->ib", gather(Gx, core_entries), gather(MinvGbT, core_cols))
@@ -505,7 +531,7 @@ class Banded(Schur):
         ok = ok & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.isfinite(LT))
         norm = jnp.maximum(norm + jnp.max(jnp.sum(jnp.abs(Scb), 1)),
                            jnp.max(jnp.sum(jnp.abs(Scb), 0) + jnp.sum(jnp.abs(Sbb), 1)))
-        return Factor((L, Dc, Db, Scb_s, X, LT), norm, ok)
+        return self.checked((L, Dc, Db, Scb_s, X, LT), norm, ok, q, t)
 
     def solve(self, F: Factor, rhs):
         pat = self.pattern
@@ -519,9 +545,8 @@ class Banded(Schur):
             rb = gather(r, self.border) * Db[:, None]
             lb = small_cho_solve(LT, rb - Scb_s.T @ y)
             out = jnp.concatenate([(y - X @ lb) * Dc[:, None], lb * Db[:, None]])
-        # A singular S gives no solution: not-finite values make the step fail.
-        out = jnp.where(F.ok, gather(out, self.inverse), jnp.nan)
-        return out[:, 0] if rhs.ndim == 1 else out
+        out = gather(out, self.inverse)
+        return self.fallback(F, out[:, 0] if rhs.ndim == 1 else out, rhs)
 
 
 class SuperLU(Schur):
@@ -574,7 +599,7 @@ class SuperLU(Schur):
         norm, ok = jax.pure_callback(
             host, (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((), jnp.bool_)),
             values, vmap_method="sequential")
-        return Factor(values, norm, ok)
+        return self.checked(values, norm, ok, q, t)
 
     def solve(self, F: Factor, rhs):
         def host(values, rhs):
@@ -585,8 +610,9 @@ class SuperLU(Schur):
             Dr = D[:, None] if r.ndim == 2 else D
             return Dr * lu.solve(Dr * r)
 
-        return jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
-                                 F.data, rhs, vmap_method="sequential")
+        out = jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
+                                F.data, rhs, vmap_method="sequential")
+        return self.fallback(F, out, rhs)
 
 
 def schur(mech: "Mechanics", kind: str = "auto") -> Schur:
