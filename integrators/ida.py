@@ -31,7 +31,7 @@ from integrators.base import FAILED, OK, Grid, Integrator
 from integrators.record import Recorder
 from problems.case import Case
 from problems.mechanics import Mechanics
-from problems.structure import DENSE_MAX, SparseJacobian
+from problems.structure import DENSE_MAX, FALLBACK_MAX, SparseJacobian
 
 Residual = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -345,7 +345,16 @@ class IDA(Integrator):
         linsolver = self.linsolver
         if linsolver == "auto":
             linsolver = "sparse" if m > DENSE_MAX and self.jacobian == "autodiff" else "dense"
+        # The initial lam' is a derivative of the multipliers: the SuperLU callback has
+        # none, so a system that would use it takes the dense solve here (up to
+        # FALLBACK_MAX constraints; beyond, the run stops with this message).
         schur = mech.schur("dense" if linsolver != "sparse" else "auto")
+        if schur.name == "superlu":
+            if m > FALLBACK_MAX:
+                raise ValueError(f"IDA: the initial multiplier derivative of this system "
+                                 f"({m} constraints, no narrow band) needs a differentiable "
+                                 f"solve with G M^-1 G^T; only up to {FALLBACK_MAX} is supported")
+            schur = mech.schur("dense")
         y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0, schur)
         redundant = ""
         if linsolver != "sparse":
