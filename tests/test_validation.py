@@ -50,6 +50,8 @@ COMMAND_LINES = [
     ("repeats-zero", [*GOOD, "--repeats", "0"], ["--repeats 0", "at least 1"]),
     ("mass-negative", ["--problems", "pendulum:mass=-1", "--integrators", "rattle"],
      ["pendulum", "mass = -1.0", "positive"]),
+    ("lattice-spacing-zero", ["--problems", "sps-lattice:H=0", "--integrators", "rattle"],
+     ["sps-lattice", "H = 0.0", "positive"]),
     ("initial-values-not-finite", ["--problems", "pendulum:theta0=nan", "--integrators", "rattle"],
      ["pendulum", "initial values are not finite"]),
     ("initial-values-inconsistent", ["--problems", "test-offset-pendulum:dx=0.01",
