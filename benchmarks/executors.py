@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib
-import importlib.util
 import os
 import sys
 import tempfile
@@ -118,16 +117,9 @@ def load_plugins() -> list[str]:
         path = Path(entry)
         name = f"driftbench_plugin_{path.stem}"
         if name not in sys.modules:
-            spec = importlib.util.spec_from_file_location(name, path)
-            if spec is None or not path.is_file():
+            if path.suffix != ".py" or not path.is_file():
                 raise ValueError(f"{PLUGIN_ENV}: {entry} is not a Python file")
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[name] = module
-            try:
-                spec.loader.exec_module(module)
-            except BaseException:
-                del sys.modules[name]
-                raise
+            problems.import_file(name, path)
         loaded.append(name)
     return loaded
 

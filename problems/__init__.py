@@ -230,6 +230,20 @@ def _run_user(label: str, source: str, run: Callable[[], object]) -> object:
     return module
 
 
+
+def import_file(name: str, path: Path):
+    """Import the Python file ``path`` as module ``name``; nothing is left in
+    ``sys.modules`` if its code raises."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    return module
+
 def load(source: str, base: Path | None = None) -> str:
     """Import user code that registers problems (and integrators): a file or a module.
 
@@ -264,18 +278,7 @@ def load(source: str, base: Path | None = None) -> str:
             raise LoadError(f"{source}: no such Python file ({path})")
         name = f"driftbench_user_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
 
-        def run():
-            spec = importlib.util.spec_from_file_location(name, path)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[name] = module
-            try:
-                spec.loader.exec_module(module)
-            except BaseException:
-                del sys.modules[name]
-                raise
-            return module
-
-        _run_user(str(path), str(path), run)
+        _run_user(str(path), str(path), lambda: import_file(name, path))
         return str(path)
     if importlib.util.find_spec(source.split(".")[0]) is None:
         raise LoadError(f"{source}: no such Python file or importable module")
