@@ -59,12 +59,14 @@ import numpy as np
 from integrators.base import COUNTERS, FAILED, OK, Grid, Trajectory
 from integrators.record import measurer
 from problems.mechanics import Mechanics
+from problems.structure import FALLBACK_MAX
 
 #: Failure codes a step can return (0 is success).
 CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite",
-         3: ("G M^-1 G^T is numerically singular (redundant constraints or a singular "
-             "configuration), which the structured linear solver cannot factorise; "
-             "linear_solver=dense handles it")}
+         3: ("G M^-1 G^T could not be solved with: not finite, or numerically singular "
+             "(redundant constraints or a singular configuration) with more than "
+             f"{FALLBACK_MAX} constraints on the superlu path; linear_solver=dense or "
+             "banded handles a singular one")}
 
 #: XLA:CPU option: emit any run of operations (while loops included) whose cost model
 #: reads and writes at most this many bytes per pass as one native kernel. The default,

@@ -38,18 +38,20 @@ after reordering is at most :data:`BAND_MAX`, else ``superlu``.
 
 Redundant constraints
 ---------------------
-One policy for every family and path. Systems are first equilibrated by a diagonal scaling
-(``S`` to unit diagonal; a general matrix by powers of two, which is exact), so that
-constraints in different units are not taken for dependent ones. A factorisation whose
-smallest pivot falls below :data:`RANK_RTOL` times its largest (squared pivots for
-Cholesky; a non-finite pivot counts as small) is numerically rank deficient: ``G`` has rank
-below ``m`` (redundant constraints, or a singular configuration). The dense path then takes
-the *basic* solution by QR with column pivoting of the equilibrated system
-(:func:`basic_solve`): for a consistent system an exact solution, whose multipliers give the
-same, unique constraint force ``G^T lambda`` as any other. The structured paths report the
-deficiency and hand the solve to the dense path's policy for up to :data:`FALLBACK_MAX`
-constraints (forming ``G`` densely for that step only); above that the step fails with
-that message.
+One policy for every family and path: the *basic* solution. Systems are first equilibrated
+by a diagonal scaling (``S`` to unit diagonal; a general matrix by powers of two, which is
+exact), so that constraints in different units are not taken for dependent ones. A pivot
+below :data:`RANK_RTOL` (relative to the largest pivot of a dense factorisation, to the
+unit diagonal of the equilibrated ``S`` in the banded one; a non-finite pivot counts as
+small) marks a numerically dependent constraint: ``G`` has rank below ``m`` (redundant
+constraints, or a singular configuration). Its multiplier is set to zero and the others
+solve the remaining equations, which for a consistent system is an exact solution, whose
+multipliers give the same, unique constraint force ``G^T lambda`` as any other. The dense
+path finds the dependent constraints by QR with column pivoting (:func:`basic_solve`); the
+banded Cholesky drops them as it meets them, in its elimination order, at no extra cost
+and without leaving the compiled loop (:func:`band_cholesky`); SuperLU, which cannot, hands
+a singular ``S`` to a dense basic solve on the host for up to :data:`FALLBACK_MAX`
+constraints, and above that the step fails with that message.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ import jax
 import jax.experimental.sparse as jsparse
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -85,9 +88,9 @@ BAND_MAX = 16
 #: the dense border of the banded solver.
 BORDER_MIN = 32
 
-#: Largest number of constraints for which a structured solver that finds ``S`` singular
-#: falls back to the dense rank-revealing solve (dense ``S`` and ``G``: 0.3 GB at 4096
-#: constraints and 8192 coordinates); larger systems fail the step instead.
+#: Largest number of constraints for which SuperLU, finding ``S`` singular, falls back to a
+#: dense rank-revealing solve of ``S`` on the host (0.13 GB at 4096 constraints); larger
+#: systems fail the step instead.
 FALLBACK_MAX = 4096
 
 #: Names a run may ask for.
@@ -259,8 +262,18 @@ def unroll(w: int) -> int:
     return max(1, 16 // w)
 
 
+def pivot(d2: jax.Array, diagonal: jax.Array) -> jax.Array:
+    """A Cholesky pivot ``sqrt(d2)``, or 0 for a dependent row: ``d2 <= RANK_RTOL diagonal``."""
+    return jnp.where(d2 > RANK_RTOL * diagonal, jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)), 0.0)
+
+
+def divide(a: jax.Array, d: jax.Array) -> jax.Array:
+    """``a / d``, and 0 where the pivot ``d`` is 0 (a dropped row: its unknown is zero)."""
+    return jnp.where(d != 0, a / jnp.where(d != 0, d, 1.0), 0.0)
+
+
 def band_cholesky(Sb: jax.Array) -> jax.Array:
-    """Cholesky factor of a symmetric band matrix, row by row.
+    """Cholesky factor of a symmetric positive semidefinite band matrix, row by row.
 
     ``Sb[i, k] = S[i, i - k]`` for ``k = 0..w`` (zero above the matrix). Returns ``Lb`` of the
     same layout with ``S = L L^T``. Row ``i`` of ``L`` within the band solves the triangular
@@ -268,6 +281,11 @@ def band_cholesky(Sb: jax.Array) -> jax.Array:
     then ``L_ii = sqrt(S_ii - x^T x)``: ``O(w^2)`` per row, carried by a scan of plain
     arithmetic (the substitution is unrolled: a LAPACK call would keep XLA from compiling
     the loop into one kernel).
+
+    A row whose squared pivot ``S_ii - x^T x`` is at most :data:`RANK_RTOL` ``S_ii`` depends
+    on the rows before it: it gets ``L_ii = 0`` and a zero column below, so that the
+    remaining rows are factorised as if it were absent, and :func:`band_solve` sets its
+    unknown to zero (the basic solution of the module notes).
     """
     w = Sb.shape[1] - 1
 
@@ -277,9 +295,9 @@ def band_cholesky(Sb: jax.Array) -> jax.Array:
             acc = s[a]
             for l in range(a):
                 acc = acc - W[a, l] * x[l]
-            x.append(acc / W[a, a])
+            x.append(divide(acc, W[a, a]))
         x = jnp.stack(x)
-        d = jnp.sqrt(s[w] - x @ x)
+        d = pivot(s[w] - x @ x, s[w])
         top = jnp.concatenate([W[1:, 1:], jnp.zeros((w - 1, 1))], axis=1)
         W = jnp.concatenate([top, jnp.concatenate([x[1:], d[None]])[None, :]], axis=0)
         return W, jnp.concatenate([x, d[None]])
@@ -292,7 +310,8 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
     """``(L L^T)^{-1} r`` for a band Cholesky factor (layout of :func:`band_cholesky`).
 
     ``r`` has shape ``(m, k)``: forward substitution with ``L``, then back substitution
-    with ``L^T``, each a scan carrying the last ``w`` solved rows.
+    with ``L^T``, each a scan carrying the last ``w`` solved rows. Dropped rows (zero
+    pivots) get zero unknowns.
     """
     m, w = Lb.shape[0], Lb.shape[1] - 1
     lower = Lb[:, :0:-1]  # L[i, i-w .. i-1]
@@ -300,7 +319,7 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
 
     def forward(y, row):
         li, di, ri = row
-        yi = (ri - li @ y) / di
+        yi = divide(ri - li @ y, di)
         return jnp.concatenate([y[1:], yi[None]]), yi
 
     _, y = jax.lax.scan(forward, jnp.zeros((w, r.shape[1])), (lower, diag, r), unroll=unroll(w))
@@ -310,7 +329,7 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
 
     def backward(x, row):
         ui, di, yi = row
-        xi = (yi - ui @ x) / di
+        xi = divide(yi - ui @ x, di)
         return jnp.concatenate([xi[None], x[:-1]]), xi
 
     _, x = jax.lax.scan(backward, jnp.zeros((w, r.shape[1])), (upper, diag, y), reverse=True,
@@ -319,13 +338,14 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
 
 
 def small_cholesky(T: jax.Array) -> jax.Array:
-    """Cholesky factor of a small dense SPD matrix, unrolled (no LAPACK call in the loop)."""
+    """Cholesky factor of a small dense positive semidefinite matrix, unrolled (no LAPACK
+    call in the loop), dropping dependent rows as :func:`band_cholesky` does."""
     k = T.shape[0]
     L = [[None] * k for _ in range(k)]
     for i in range(k):
         for j in range(i + 1):
             acc = T[i, j] - sum((L[i][l] * L[j][l] for l in range(j)), jnp.asarray(0.0))
-            L[i][j] = jnp.sqrt(acc) if i == j else acc / L[j][j]
+            L[i][j] = pivot(acc, T[i, i]) if i == j else divide(acc, L[j][j])
     return jnp.stack([jnp.stack([L[i][j] if j <= i else jnp.asarray(0.0) for j in range(k)])
                       for i in range(k)])
 
@@ -335,25 +355,24 @@ def small_cho_solve(L: jax.Array, r: jax.Array) -> jax.Array:
     k = L.shape[0]
     y = []
     for i in range(k):
-        y.append((r[i] - sum((L[i, l] * y[l] for l in range(i)), jnp.zeros_like(r[i]))) / L[i, i])
+        y.append(divide(r[i] - sum((L[i, l] * y[l] for l in range(i)), jnp.zeros_like(r[i])),
+                        L[i, i]))
     x = [None] * k
     for i in reversed(range(k)):
-        x[i] = (y[i] - sum((L[l, i] * x[l] for l in range(i + 1, k)), jnp.zeros_like(r[i]))) / L[i, i]
+        x[i] = divide(y[i] - sum((L[l, i] * x[l] for l in range(i + 1, k)), jnp.zeros_like(r[i])),
+                      L[i, i])
     return jnp.stack(x)
 
 
 # --- the solvers --------------------------------------------------------------------------------
 class Factor(NamedTuple):
-    """A factorised ``S``: the solver's arrays, ``||S||_inf`` (bounded above), whether ``S``
-    can be solved with (``ok``), whether the structured factor itself is regular, and the
-    point ``(q, t)`` it was taken at (for the dense fallback)."""
+    """A factorised ``S``: the solver's arrays, ``||S||_inf`` (bounded above) and whether
+    ``S`` can be solved with (``ok``: false for a singular ``S`` that SuperLU cannot hand
+    to the dense solve, and for a factor with non-finite values)."""
 
     data: Any
     norm: jax.Array
     ok: jax.Array
-    regular: jax.Array = True
-    q: Any = None
-    t: Any = None
 
 
 class Schur:
@@ -382,20 +401,6 @@ class Schur:
     def solve(self, F: Factor, rhs: jax.Array) -> jax.Array:
         """``S^{-1} rhs`` for a vector or an ``(m, k)`` matrix of columns."""
         return spd_solve(F.data, rhs)
-
-    def checked(self, data, norm, regular, q, t) -> Factor:
-        """A structured factor: solvable if regular, or if the dense fallback may take over."""
-        ok = regular | (self.mech.m <= FALLBACK_MAX)
-        return Factor(data, norm, ok, regular, q, t)
-
-    def fallback(self, F: Factor, out: jax.Array, rhs: jax.Array) -> jax.Array:
-        """``out`` where the structured factor is regular; else the dense policy's solution
-        (for at most :data:`FALLBACK_MAX` constraints), or not-finite values."""
-        if self.mech.m > FALLBACK_MAX:
-            return jnp.where(F.regular, out, jnp.nan)
-        dense = Schur(self.mech)
-        return jax.lax.cond(F.regular, lambda: out,
-                            lambda: dense.solve(dense.factor(F.q, F.t), rhs))
 
 
 class Pattern:
@@ -508,15 +513,12 @@ class Banded(Schur):
         shifted = jnp.stack([jnp.concatenate([jnp.zeros(k), Dc[:mc - k]]) for k in range(w + 1)], 1)
         Ss = Sb * Dc[:, None] * shifted
         L = band_cholesky(Ss)
-        pivots = L[:, 0] ** 2
-        ok = jnp.min(pivots) > RANK_RTOL * jnp.max(pivots)
         absband = jnp.abs(Sb)
         padded = jnp.concatenate([absband, jnp.zeros((w, w + 1))])
         norm = jnp.max(jnp.sum(absband, 1) - absband[:, 0]
                        + sum(padded[k:k + mc, k] for k in range(w + 1)))
         if nb == 0:
-            return self.checked((L, Dc, None, None, None, None), norm,
-                                ok & jnp.all(jnp.isfinite(L)), q, t)
+            return Factor((L, Dc, None, None, None, None), norm, jnp.all(jnp.isfinite(L)))
         Gb = gather(Gx, border_index)                             # (nb, n)
         MinvGbT = (Gb * dinv[None, :]).T                          # (n, nb)
         Scb = jnp.einsum("ir,irb->ib", gather(Gx, core_entries), gather(MinvGbT, core_cols))
@@ -526,12 +528,10 @@ class Banded(Schur):
         X = band_solve(L, Scb_s)
         T = Sbb * Db[:, None] * Db[None, :] - Scb_s.T @ X
         LT = small_cholesky(T)
-        tpiv = jnp.diag(LT) ** 2
-        ok = ok & (jnp.min(tpiv) > RANK_RTOL * jnp.max(jnp.diag(T), initial=1.0))
-        ok = ok & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.isfinite(LT))
+        ok = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.isfinite(LT))
         norm = jnp.maximum(norm + jnp.max(jnp.sum(jnp.abs(Scb), 1)),
                            jnp.max(jnp.sum(jnp.abs(Scb), 0) + jnp.sum(jnp.abs(Sbb), 1)))
-        return self.checked((L, Dc, Db, Scb_s, X, LT), norm, ok, q, t)
+        return Factor((L, Dc, Db, Scb_s, X, LT), norm, ok)
 
     def solve(self, F: Factor, rhs):
         pat = self.pattern
@@ -546,7 +546,7 @@ class Banded(Schur):
             lb = small_cho_solve(LT, rb - Scb_s.T @ y)
             out = jnp.concatenate([(y - X @ lb) * Dc[:, None], lb * Db[:, None]])
         out = gather(out, self.inverse)
-        return self.fallback(F, out[:, 0] if rhs.ndim == 1 else out, rhs)
+        return out[:, 0] if rhs.ndim == 1 else out
 
 
 class SuperLU(Schur):
@@ -568,7 +568,9 @@ class SuperLU(Schur):
         self._last: tuple[bytes, Any] | None = None
 
     def _factorise(self, values: np.ndarray):
-        """SuperLU of the unit-diagonal ``S`` for ``G``'s values (the last one is kept)."""
+        """A solver for the unit-diagonal ``S`` of ``G``'s values (the last one is kept):
+        SuperLU's factor, or for a singular ``S`` of at most :data:`FALLBACK_MAX` rows the
+        dense ``S`` (solved by least squares, rank by :data:`RANK_RTOL`), or ``None``."""
         key = hashlib.blake2b(values.tobytes(), digest_size=16).digest()
         if self._last is not None and self._last[0] == key:
             return self._last[1]
@@ -582,10 +584,15 @@ class SuperLU(Schur):
             lu = spla.splu(Ss, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                            options=dict(SymmetricMode=True))
             pivots = np.abs(lu.U.diagonal())
-            ok = bool(pivots.min() > RANK_RTOL * pivots.max())
+            solver = lu.solve if pivots.min() > RANK_RTOL * pivots.max() else None
         except RuntimeError:  # exactly singular
-            lu, ok = None, False
-        entry = (lu, D, norm, ok)
+            solver = None
+        if solver is None and S.shape[0] <= FALLBACK_MAX:
+            # The minimum-norm solution, not the basic one: both are exact for a
+            # consistent system and give the same constraint force.
+            def solver(r, dense=Ss.toarray()):
+                return scipy.linalg.lstsq(dense, r, cond=RANK_RTOL)[0]
+        entry = (solver, D, norm, solver is not None)
         self._last = (key, entry)
         return entry
 
@@ -599,20 +606,19 @@ class SuperLU(Schur):
         norm, ok = jax.pure_callback(
             host, (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((), jnp.bool_)),
             values, vmap_method="sequential")
-        return self.checked(values, norm, ok, q, t)
+        return Factor(values, norm, ok)
 
     def solve(self, F: Factor, rhs):
         def host(values, rhs):
-            lu, D, _, ok = self._factorise(np.asarray(values))
+            solver, D, _, ok = self._factorise(np.asarray(values))
             if not ok:
                 return np.full(rhs.shape, np.nan)
             r = np.asarray(rhs)
             Dr = D[:, None] if r.ndim == 2 else D
-            return Dr * lu.solve(Dr * r)
+            return Dr * solver(Dr * r)
 
-        out = jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
-                                F.data, rhs, vmap_method="sequential")
-        return self.fallback(F, out, rhs)
+        return jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
+                                 F.data, rhs, vmap_method="sequential")
 
 
 def schur(mech: "Mechanics", kind: str = "auto") -> Schur:

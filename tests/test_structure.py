@@ -137,10 +137,11 @@ def redundant_chain():
 
 
 def test_one_policy_for_redundant_constraints(monkeypatch):
-    # Dense: the basic solution, a valid run. Structured: the singular S is detected and
-    # the dense policy takes over (the same run, to round-off); above FALLBACK_MAX
-    # constraints the run fails with the policy's message instead of returning
-    # meaningless states.
+    # Every path takes an exact solution of the consistent, singular system (the same
+    # constraint force, so the same run to round-off): dense and banded the basic one
+    # (banded drops the dependent row in its Cholesky), SuperLU a dense least-squares
+    # solve for up to FALLBACK_MAX constraints; above that SuperLU fails the run with
+    # the policy's message instead of returning meaningless states.
     import integrators
     import problems.structure
     from integrators import Grid
@@ -157,11 +158,34 @@ def test_one_policy_for_redundant_constraints(monkeypatch):
         assert traj.status == "ok", traj.message
         assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-12
     monkeypatch.setattr(problems.structure, "FALLBACK_MAX", 0)
-    for kind in STRUCTURED:
-        traj = run(kind)
-        assert traj.status == "failed"
-        assert "numerically singular" in traj.message
-        assert "linear_solver=dense" in traj.message
+    assert run("banded").status == "ok"
+    traj = run("superlu")
+    assert traj.status == "failed"
+    assert "numerically singular" in traj.message
+    assert "linear_solver=dense" in traj.message
+
+
+def test_banded_cholesky_drops_dependent_rows():
+    # A singular band matrix (row 3 = row 1 + row 2 of G): the dropped row's unknown is
+    # zero and the others solve the consistent system exactly.
+    from problems.structure import band_cholesky, band_solve
+    rng = np.random.default_rng(0)
+    G = np.zeros((6, 9))
+    for i in range(6):
+        G[i, i:i + 3] = rng.normal(size=3)
+    G[3] = G[1] + G[2]
+    S = G @ G.T
+    w = 5
+    Sb = np.zeros((6, w + 1))
+    for i in range(6):
+        for k in range(min(i, w) + 1):
+            Sb[i, k] = S[i, i - k]
+    L = band_cholesky(jnp.asarray(Sb))
+    assert float(L[3, 0]) == 0.0 and np.all(np.asarray(L[4:, 0]) > 0)
+    rhs = S @ rng.normal(size=6)
+    x = np.asarray(band_solve(L, jnp.asarray(rhs)[:, None]))[:, 0]
+    assert x[3] == 0.0
+    assert np.max(np.abs(S @ x - rhs)) <= 1e-12 * np.max(np.abs(rhs))
 
 
 def test_structured_solvers_refuse_a_mass_that_is_not_a_constant_diagonal():
