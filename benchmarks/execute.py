@@ -67,7 +67,7 @@ def known(spec: RunSpec, case, integ, grid_options: dict | None, version: str) -
     return dict(t_end=case.t_end, options=json.dumps(opts, default=str),
                 params=json.dumps(case.params, default=str), h=opts.get("h"),
                 rtol=opts.get("rtol"), atol=opts.get("atol"), t0=case.t0,
-                energy_scale=case.energy_scale, nominal_order=integ.order,
+                energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
                 sensitive=int(bool(case.system.sensitive)),
                 run_key=run_key(resolved, version))
 

@@ -80,25 +80,41 @@ class Trajectory:
 class Integrator:
     """Base class: subclasses add their options as dataclass fields.
 
+    What a method *is*, as data that tests and reports can ask for (its traits):
+
     Class attributes
     ----------------
+    family : str
+        The family the method belongs to (the README's integrator table).
     adaptive : bool
         Whether the method controls its own step (``rtol``/``atol``) or takes ``h``.
-    order : int or None
-        Nominal order, for convergence plots.
+    symplectic : bool
+        Whether a step is a symplectic map of the constrained flow for a conservative
+        system with scleronomic constraints (then energy errors stay bounded over
+        exponentially long times, for small enough ``h``).
+    enforces : tuple of str
+        The constraint levels held at every step to the solver's tolerance: ``"position"``
+        (``g = 0``) and ``"velocity"`` (``G v + g_t = 0``); empty where drift is only
+        damped. A property where it depends on an option (the formulation).
+    nominal_order : int or None
+        The order of the global error for smooth solutions (convergence plots and fits);
+        ``None`` where no single order applies. A property where it depends on an option.
     """
 
+    family: ClassVar[str] = ""
     adaptive: ClassVar[bool] = False
+    symplectic: ClassVar[bool] = False
+    enforces: ClassVar[tuple[str, ...]] = ()
+    nominal_order: ClassVar[int | None] = None
+
+    #: The constraint levels of :attr:`enforces`.
+    LEVELS: ClassVar[tuple[str, ...]] = ("position", "velocity")
 
     def __post_init__(self):
         # An adaptive method's ``atol`` defaults to NaN, which stands for "equal to rtol".
         atol = getattr(self, "atol", None)
         if isinstance(atol, float) and math.isnan(atol):
             object.__setattr__(self, "atol", self.rtol)
-
-    @property
-    def order(self) -> int | None:
-        return None
 
     def options(self) -> dict[str, object]:
         """Every option of this integrator (what ran)."""

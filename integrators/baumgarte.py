@@ -298,8 +298,10 @@ class BaumgarteBase(Integrator):
     beta: float = 3.0
     linear_solver: str = "auto"
 
+    family: ClassVar[str] = "Baumgarte explicit RK"
+
     @property
-    def order(self) -> int:
+    def nominal_order(self) -> int:
         return SOLVERS[self.solver]().order(None)
 
     def check(self) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -152,9 +152,12 @@ class GeneralizedAlpha(Integrator):
     newton_max_iter: int = 20
     linear_solver: str = "auto"
 
+    family: ClassVar[str] = "generalized-alpha"
+    nominal_order: ClassVar[int] = 2
+
     @property
-    def order(self) -> int:
-        return 2
+    def enforces(self) -> tuple[str, ...]:
+        return ("position", "velocity") if FORMULATIONS[self.formulation] else ("position",)
 
     def check(self) -> None:
         super().check()

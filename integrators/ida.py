@@ -88,16 +88,18 @@ def index1_residual(mech: Mechanics) -> Residual:
 
 
 class Formulation(NamedTuple):
-    """A DAE form: its residual builder and how many multiplier blocks of size ``m`` it has."""
+    """A DAE form: its residual builder, how many multiplier blocks of size ``m`` it has and
+    which constraint levels are among its equations (held to IDA's tolerance)."""
 
     residual: Callable[[Mechanics], Residual]
     multiplier_blocks: int
+    enforces: tuple[str, ...]
 
 
 #: ``formulation`` option -> DAE form.
 FORMULATIONS: dict[str, Formulation] = {
-    "ggl": Formulation(ggl_residual, 2),
-    "index1": Formulation(index1_residual, 1),
+    "ggl": Formulation(ggl_residual, 2, ("position", "velocity")),
+    "index1": Formulation(index1_residual, 1, ()),
 }
 
 #: ``multiplier_atol`` that keeps the multipliers out of the error test.
@@ -307,9 +309,12 @@ class IDA(Integrator):
     linsolver: str = "auto"
     jacobian: str = "autodiff"
 
+    family: ClassVar[str] = "BDF (SUNDIALS IDA)"
+    # nominal_order stays None: variable-order BDF (orders 1 to max_order, chosen per step).
+
     @property
-    def order(self) -> int:
-        return self.max_order
+    def enforces(self) -> tuple[str, ...]:
+        return FORMULATIONS[self.formulation].enforces
 
     def check(self) -> None:
         super().check()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -83,8 +84,12 @@ class LobattoIIIAIIIB(Integrator):
     newton_max_iter: int = 50
     linear_solver: str = "auto"
 
+    family: ClassVar[str] = "Lobatto IIIA-IIIB (SPARK)"
+    symplectic: ClassVar[bool] = True
+    enforces: ClassVar[tuple[str, ...]] = ("position", "velocity")
+
     @property
-    def order(self) -> int:
+    def nominal_order(self) -> int:
         return 2 * self.stages - 2
 
     def check(self) -> None:

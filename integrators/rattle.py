@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -67,9 +68,10 @@ class Rattle(Integrator):
     newton_max_iter: int = 50
     linear_solver: str = "auto"
 
-    @property
-    def order(self) -> int:
-        return 2
+    family: ClassVar[str] = "RATTLE"
+    symplectic: ClassVar[bool] = True
+    enforces: ClassVar[tuple[str, ...]] = ("position", "velocity")
+    nominal_order: ClassVar[int] = 2
 
     def prepare(self, case: Case, grid: Grid):
         self.check()
