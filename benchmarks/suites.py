@@ -2,7 +2,7 @@
 
 A suite file has a ``description``, optional ``repeats``, ``timeout`` (seconds per run) and
 ``budget`` (seconds for the whole suite, report included, on the project's reference
-machine of two cores: what ``python -m benchmarks.suite_time`` holds it to), ``[[group]]``
+machine of two cores: what ``python -m benchmarks.perf.suite_time`` holds it to), ``[[group]]``
 tables of runs and ``studies``; each group runs every combination of its lists::
 
     description = "the seed's experiment"

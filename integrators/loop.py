@@ -18,7 +18,7 @@ Under :data:`KERNEL_FLAG` XLA:CPU compiles the whole time loop, the methods' New
 included, into one native kernel. Without it XLA's runtime dispatches every fused
 operation of the loop body on its own, tens of nanoseconds each, which is most of a small
 problem's step (RATTLE on sps-receiver runs about 8 times faster with the flag: see
-``benchmarks/throughput.py``, which has ``--xla-default`` to measure without it). The
+``benchmarks/perf/throughput.py``, which has ``--xla-default`` to measure without it). The
 flag is read once, when JAX creates its CPU client, so it has to be in ``XLA_FLAGS``
 before the process first uses JAX (:func:`kernel_environment`; the benchmark workers
 start with it). Results agree to round-off with and without it (bit for bit on the

@@ -77,7 +77,7 @@ if TYPE_CHECKING:
 RANK_RTOL = 1e-12
 
 #: Largest number of constraints solved densely by default. Measured with RATTLE on the
-#: chain (``python -m benchmarks.scaling``): dense is faster below about this size.
+#: chain (``python -m benchmarks.perf.scaling``): dense is faster below about this size.
 DENSE_MAX = 8
 
 #: Largest core bandwidth the banded Cholesky takes; wider bands go to SuperLU (its cost

@@ -153,7 +153,7 @@ def test_sigterm_stops_the_workers_and_keeps_the_store(engine, tmp_path):
 def test_suite_time_holds_each_suite_to_its_budget(tmp_path, capsys):
     import json
 
-    from benchmarks import suite_time
+    from benchmarks.perf import suite_time
 
     body = ('[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\nh = [0.01]\n'
             't_end = 1.0\n')

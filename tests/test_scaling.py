@@ -12,8 +12,8 @@ import pytest
 
 import integrators
 import problems
-from benchmarks import scaling
-from benchmarks.scaling import C_NAME, Point, bars, fit_exponent
+from benchmarks.perf import scaling
+from benchmarks.perf.scaling import C_NAME, Point, bars, fit_exponent
 from benchmarks.executors import PLUGIN_ENV
 from integrators.base import Grid
 
@@ -142,7 +142,7 @@ def test_peak_memory_is_the_program_s_own_not_its_parent_s():
         pytest.skip("no /proc on this system")
     held = np.ones(200 << 17)  # 200 MiB, touched
     ending, out, _, _ = scaling.run_process(
-        [sys.executable, "-c", "from benchmarks.scaling import peak_rss; print(peak_rss())"],
+        [sys.executable, "-c", "from benchmarks.perf.scaling import peak_rss; print(peak_rss())"],
         60.0, dict(os.environ))
     assert ending == "" and held.sum() > 0
     assert int(out.split()[-1]) < 100 << 20

@@ -11,9 +11,9 @@ during the measurement (the code version changes) voids that comparison, and is 
 
 Usage::
 
-    python -m benchmarks.parallel_speedup                 # quick suite, --jobs 1 and 2
-    python -m benchmarks.parallel_speedup --jobs 1 --cluster local:2
-    python -m benchmarks.parallel_speedup --suite seed-sps --jobs 1 2 --out results/speedup
+    python -m benchmarks.perf.parallel_speedup                 # quick suite, --jobs 1 and 2
+    python -m benchmarks.perf.parallel_speedup --jobs 1 --cluster local:2
+    python -m benchmarks.perf.parallel_speedup --suite seed-sps --jobs 1 2 --out results/speedup
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def measure(suite_name: str, engines: list[tuple[int | None, str | None]], out: 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.parallel_speedup",
+    p = argparse.ArgumentParser(prog="python -m benchmarks.perf.parallel_speedup",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--suite", default=default_suite(), help="suite to run (default: quick)")
     p.add_argument("--jobs", nargs="*", type=int,

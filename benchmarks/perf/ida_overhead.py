@@ -17,8 +17,8 @@ with the benchmark workers' thread settings (one intra-op thread).
 
 Usage::
 
-    python -m benchmarks.ida_overhead
-    python -m benchmarks.ida_overhead --t-end 20 --rtol 1e-10 --rounds 5
+    python -m benchmarks.perf.ida_overhead
+    python -m benchmarks.perf.ida_overhead --t-end 20 --rtol 1e-10 --rounds 5
 """
 
 from __future__ import annotations

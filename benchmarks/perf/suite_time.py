@@ -10,8 +10,8 @@ past its budget or the command fails.
 
 Usage::
 
-    python -m benchmarks.suite_time quick ci
-    python -m benchmarks.suite_time library --jobs 2 --out results/suite-time
+    python -m benchmarks.perf.suite_time quick ci
+    python -m benchmarks.perf.suite_time library --jobs 2 --out results/suite-time
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def measure(name: str, budget: float | None, out: Path, jobs: int | None = None)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.suite_time",
+    p = argparse.ArgumentParser(prog="python -m benchmarks.perf.suite_time",
                                 description=__doc__.split("\n")[0])
     p.add_argument("suites", nargs="+", help="suite names or paths")
     p.add_argument("--jobs", type=int, help="passed on to benchmarks.run (default: its own)")

@@ -1,7 +1,7 @@
 """Benchmark: step throughput of our compiled loop against plain C, and its peak memory.
 
 Throughput
-    The speed-of-light yardstick is ``benchmarks/yardstick/rattle_sps.c``: the same RATTLE
+    The speed-of-light yardstick is ``benchmarks/perf/yardstick/rattle_sps.c``: the same RATTLE
     step on sps-receiver as ``rattle`` takes (Newton on the scalar multiplier with the same
     convergence test and tolerance, the linear velocity projection) and the same per-step
     bookkeeping (``|g|``, ``|G v|``, ``|H - H0|`` and their per-window maxima), in plain C.
@@ -38,8 +38,8 @@ when something did not run or the implementations disagree, not when a bar is mi
 
 Usage::
 
-    python -m benchmarks.throughput
-    python -m benchmarks.throughput --steps 2e6 --rounds 7 --skip-memory
+    python -m benchmarks.perf.throughput
+    python -m benchmarks.perf.throughput --steps 2e6 --rounds 7 --skip-memory
 """
 
 from __future__ import annotations

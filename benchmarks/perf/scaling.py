@@ -16,7 +16,7 @@ What runs
     on the chain at N = 16 only (dense, it cannot run N = 256 today) and not on the ring;
     ``ida-ggl`` chooses its own steps.
 
-    At each chain N the C yardstick ``benchmarks/yardstick/rattle_chain.c`` runs the same
+    At each chain N the C yardstick ``benchmarks/perf/yardstick/rattle_chain.c`` runs the same
     steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
     N multipliers with rattle's convergence test and tolerance, each iteration one
     tridiagonal Thomas solve; the velocity projection, another), and the same per-step
@@ -76,8 +76,8 @@ disagreeing); a missed bar is not an error. Bad options: one line and exit statu
 
 Usage::
 
-    python -m benchmarks.scaling
-    python -m benchmarks.scaling --n 64 256 --problems chain --families rattle --limit 30
+    python -m benchmarks.perf.scaling
+    python -m benchmarks.perf.scaling --n 64 256 --problems chain --families rattle --limit 30
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 YARDSTICK = Path(__file__).resolve().parent / "yardstick" / "rattle_chain.c"
 
 FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
@@ -266,7 +266,7 @@ def point_main(argv: list[str]) -> int:
     return 0
 
 
-CHILD = "import sys; from benchmarks.scaling import point_main; sys.exit(point_main(sys.argv[1:]))"
+CHILD = "import sys; from benchmarks.perf.scaling import point_main; sys.exit(point_main(sys.argv[1:]))"
 
 
 def run_process(command: list[str], limit: float,
@@ -399,7 +399,7 @@ def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
 def baseline_rss(env: dict) -> int | None:
     """Peak resident set of a process that imports the suite and computes once (bytes)."""
     code = ("import jax, jax.numpy as jnp, integrators, problems; "
-            "from benchmarks.scaling import peak_rss; "
+            "from benchmarks.perf.scaling import peak_rss; "
             "jax.block_until_ready(jnp.ones(3) * 2.0); print(peak_rss())")
     ending, stdout, stderr, _ = run_process([sys.executable, "-c", code], LIMIT, env)
     if ending:
@@ -599,7 +599,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m benchmarks.scaling", description=__doc__.split("\n")[0])
+    p = _Parser(prog="python -m benchmarks.perf.scaling", description=__doc__.split("\n")[0])
     p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
                    help="problems (default: chain sps-ring)")
     p.add_argument("--n", nargs="+", type=int, default=list(SIZES),

@@ -1,0 +1,9 @@
+"""The suite's own performance checks, apart from the harness they measure.
+
+Each module runs as ``python -m benchmarks.perf.NAME`` and measures side by side in one run
+(a ratio, never a timed assertion): ``throughput`` (steps per second against a C RATTLE
+loop), ``scaling`` (cost per step against N, every family, against a C O(N) RATTLE),
+``ida_overhead`` (IDA's time in our callbacks), ``parallel_speedup`` (engines and worker
+counts on one suite) and ``suite_time`` (each suite end to end against its budget). The C
+yardsticks are in ``yardstick/``.
+"""
