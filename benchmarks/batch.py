@@ -59,14 +59,11 @@ from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunS
 from benchmarks.store import STORE_NAME, UNFINISHED, Store, StoreError, load_runs
 from integrators.base import ERROR, TIMEOUT
 from problems import suggest
+from studies import STUDIES
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
 DEFAULT_TIMEOUT = 3600.0
 
-#: Studies a suite may name: name -> "module:function" with ``function(out) -> dict``.
-STUDIES: dict[str, str] = {
-    "flexible-modal": "benchmarks.flexible_modal:run",
-}
 
 
 def study_target(name: str) -> str:
@@ -318,7 +315,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     resume : bool
         Skip the runs whose ``run_key`` the store holds as finished.
     studies : iterable of str
-        Names of studies (:data:`STUDIES`) run after the runs; their tables and figures go
+        Names of studies (:data:`studies.STUDIES`) run after the runs; their tables and figures go
         to the store (section = the study's name), the files they write to
         ``out/studies/NAME``; a study that fails is stored as an ``error`` table with its
         message.

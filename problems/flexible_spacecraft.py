@@ -89,15 +89,16 @@ Modal data
 ----------
 ``model="fe"`` (default) reads the reduced finite-element model stored in
 ``problems/data/flexible_spacecraft.npz``: the 20-system-mode model of
-``problems.flexible.reduced_model("system")`` (deformation coordinates: the free-free
+``studies.flexible.reduced_model("system")`` (deformation coordinates: the free-free
 structure's modes relative to the hub frame) and the outcome of the seed's section-4
-strategy, :func:`regenerate`. With torques in and hub angles out, the Table-2 analysis
+strategy, which the ``flexible-modal`` study carries out and stores
+(:func:`studies.flexible_modal.regenerate`). With torques in and hub angles out, the Table-2 analysis
 retains system modes 2 and 4 (the others are uncontrollable by symmetry or negligible),
 and the first four structural modes are the fewest that reproduce those two frequencies
 of the full finite-element model within 1 %, so ``n_modes = 0`` means four elastic
 coordinates. Regenerate it (under a minute: the shell model is built and reduced) with::
 
-    python -m problems.flexible_spacecraft --regenerate
+    python -m studies.flexible_modal --regenerate
 
 ``model="demo"`` is a small built-in stand-in with the same hub (a closed 2 x 3 x 3 m box
 of 1.5 mm aluminium walls, rigid) and each 2 x 1.4 m panel lumped into one mass with an
@@ -107,7 +108,6 @@ coordinates.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 from dataclasses import dataclass
@@ -120,7 +120,7 @@ from problems import register
 from problems.case import Case, make_case
 from problems.mechanics import System
 
-#: Stored reduced finite-element model (see :func:`regenerate`).
+#: Stored reduced finite-element model (written by the ``flexible-modal`` study).
 DATA = Path(__file__).parent / "data" / "flexible_spacecraft.npz"
 #: Number of system modes of the stored model (the seed's 20-mode system modal set).
 N_STORED = 20
@@ -215,7 +215,7 @@ def stored_model() -> ModalData:
     if not DATA.exists():
         raise FileNotFoundError(
             f"{DATA} is missing; build it with "
-            "`python -m problems.flexible_spacecraft --regenerate`")
+            "`python -m studies.flexible_modal --regenerate`")
     with np.load(DATA, allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
         return ModalData(z["M"], z["K"], meta["source"], int(meta["n_structural"]))
@@ -387,58 +387,3 @@ def flexible_spacecraft(model: str = "fe", n_modes: int = 0, w0x: float = 0.05,
     scale = energy if energy > 0.0 else 1.0
     return make_case("flexible-spacecraft", system, x0, v0, (0.0, t_end), params,
                      energy_scale=scale)
-
-
-# --------------------------------------------------------------------------------------
-# Regeneration of the stored model
-# --------------------------------------------------------------------------------------
-def regenerate(path: Path = DATA, n_stored: int = N_STORED, tol: float = 0.01) -> dict:
-    """Build the reduced FE model, select the retained modes and store the data.
-
-    Steps (seed section 4): the ``n_stored``-mode system modal set
-    (``problems.flexible.reduced_model("system", n_stored)``); its Table-2 analysis
-    (:func:`problems.flexible.selection.table2`) gives the retained system modes; the
-    smallest number of structural modes whose model reproduces those modes' frequencies
-    of the full finite-element model within ``tol``
-    (:func:`problems.flexible.selection.structural_mode_count`, at least two) is stored
-    as the benchmark's default. The stored ``M``, ``K`` are the ``n_stored``-mode model;
-    the benchmark takes their leading block, which is the model with fewer system modes
-    (the system modes do not depend on how many are kept; checked here to 1e-9).
-    """
-    from problems.flexible import reduced_model, substructures
-    from problems.flexible.selection import structural_mode_count, table2
-    from problems.flexible.study import fe_modes
-
-    full = reduced_model("system", n_modes=n_stored)
-    M, K = np.asarray(full.M, dtype=float), np.asarray(full.K, dtype=float)
-    table, _ = table2(full)
-    retained = [int(i) for i in table.loc[table["retained"], "mode"]]
-    f_fe = fe_modes(substructures().fe)["f_hz"].to_numpy()[6:]
-    n_struct, trials = structural_mode_count(
-        lambda k: reduced_model("system", n_modes=k), retained,
-        f_fe[[i - 1 for i in retained]], tol, n_stored)
-    n_default = max(2, n_struct if n_struct is not None else n_stored)
-    small = reduced_model("system", n_modes=n_default)
-    block = np.r_[0:6 + n_default]
-    for name, A, B in (("M", small.M, M), ("K", small.K, K)):
-        gap = np.max(np.abs(A - B[np.ix_(block, block)])) / np.max(np.abs(B))
-        if gap > 1e-9:
-            raise RuntimeError(f"the {n_default}-mode {name} is not the leading block of the "
-                               f"{n_stored}-mode one (relative gap {gap:.1e})")
-    meta = dict(source=f"problems.flexible.reduced_model('system', n_modes={n_stored})",
-                command="python -m problems.flexible_spacecraft --regenerate",
-                retained_system_modes=retained, n_structural=n_default,
-                structural_mode_count=n_struct, tol=tol,
-                reference_hz=[float(f_fe[i - 1]) for i in retained],
-                trials={c: [v if isinstance(v, (bool, np.bool_)) or np.isfinite(v) else None
-                            for v in trials[c].tolist()] for c in trials.columns})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, M=M, K=K, meta=np.array(json.dumps(meta)))
-    return meta
-
-
-if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--regenerate", action="store_true", help=f"rebuild {DATA}")
-    if parser.parse_args().regenerate:
-        print(json.dumps(regenerate(), indent=1))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.linalg as la
 
-from problems.flexible import reduced_model
-from problems.flexible.modal import MODAL_SETS, BASES, Substructures, hybrid_model, reduce, split_modes
-from problems.flexible.spacecraft import SpacecraftDesign, build_spacecraft, free_vibration, frequencies_hz
+from studies.flexible import reduced_model
+from studies.flexible.modal import MODAL_SETS, BASES, Substructures, hybrid_model, reduce, split_modes
+from studies.flexible.spacecraft import SpacecraftDesign, build_spacecraft, free_vibration, frequencies_hz
 
 COARSE = SpacecraftDesign(element_size=0.5)
 SWEEPS = {

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from problems.flexible.mesh import box, merge, plate, rectangle
-from problems.flexible.shell import ShellSection, assemble, rigid_body_modes
-from problems.flexible.study import (
+from studies.flexible.mesh import box, merge, plate, rectangle
+from studies.flexible.shell import ShellSection, assemble, rigid_body_modes
+from studies.flexible.study import (
     CANTILEVER_CLASSICAL,
     FREE_PLATE_CLASSICAL,
     PLATE_SECTION,

@@ -12,7 +12,7 @@ import problems
 from integrators import make as make_integrator
 from integrators.base import OK, Grid
 from problems import flexible_spacecraft as fs
-from problems.flexible.selection import free_free_frequencies_hz
+from studies.flexible.selection import free_free_frequencies_hz
 
 MODELS = ["demo"] + (["fe"] if fs.DATA.exists() else [])
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from problems.flexible import selection as sel
+from studies.flexible import selection as sel
 from problems.flexible_spacecraft import hybrid_spring_mass, skew
 
 

@@ -1,7 +1,8 @@
 """Flexible-spacecraft modal study: plate verification, full FE modes, the seed's Table 1 analogue.
 
-Run alone with ``python -m benchmarks.flexible_modal --out DIR``; the suite
-runner calls :func:`run`.
+Run alone with ``python -m studies.flexible_modal --out DIR``; the suite runner calls
+:func:`run`. ``python -m studies.flexible_modal --regenerate`` rebuilds the reduced model
+that the ``flexible-spacecraft`` problem loads (:func:`regenerate`).
 
 Files written under ``out``:
 
@@ -29,6 +30,7 @@ Files written under ``out``:
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from pathlib import Path
@@ -45,9 +47,10 @@ if __name__ == "__main__":
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from problems.flexible import reduced_model, selection, substructures  # noqa: E402
-from problems.flexible.spacecraft import SpacecraftDesign  # noqa: E402
-from problems.flexible.study import (  # noqa: E402
+from problems.flexible_spacecraft import DATA, N_STORED  # noqa: E402
+from studies.flexible import reduced_model, selection, substructures  # noqa: E402
+from studies.flexible.spacecraft import SpacecraftDesign  # noqa: E402
+from studies.flexible.study import (  # noqa: E402
     SEED_ORDERING,
     SEED_TABLE1,
     convergence_summary,
@@ -151,13 +154,60 @@ def run(out: Path) -> dict[str, pd.DataFrame]:
     return tables
 
 
+def regenerate(path: Path = DATA, n_stored: int = N_STORED, tol: float = 0.01) -> dict:
+    """Build the reduced FE model, select the retained modes and store the benchmark's data.
+
+    Steps (seed section 4): the ``n_stored``-mode system modal set
+    (``reduced_model("system", n_stored)``); its Table-2 analysis
+    (:func:`studies.flexible.selection.table2`) gives the retained system modes; the
+    smallest number of structural modes whose model reproduces those modes' frequencies
+    of the full finite-element model within ``tol``
+    (:func:`studies.flexible.selection.structural_mode_count`, at least two) is stored
+    as the default of the ``flexible-spacecraft`` problem, which reads ``path``. The stored
+    ``M``, ``K`` are the ``n_stored``-mode model; the problem takes their leading block,
+    which is the model with fewer system modes (the system modes do not depend on how
+    many are kept; checked here to 1e-9).
+    """
+    full = reduced_model("system", n_modes=n_stored)
+    M, K = np.asarray(full.M, dtype=float), np.asarray(full.K, dtype=float)
+    table, _ = selection.table2(full)
+    retained = [int(i) for i in table.loc[table["retained"], "mode"]]
+    f_fe = fe_modes(substructures().fe)["f_hz"].to_numpy()[6:]
+    n_struct, trials = selection.structural_mode_count(
+        lambda k: reduced_model("system", n_modes=k), retained,
+        f_fe[[i - 1 for i in retained]], tol, n_stored)
+    n_default = max(2, n_struct if n_struct is not None else n_stored)
+    small = reduced_model("system", n_modes=n_default)
+    block = np.r_[0:6 + n_default]
+    for name, A, B in (("M", small.M, M), ("K", small.K, K)):
+        gap = np.max(np.abs(A - B[np.ix_(block, block)])) / np.max(np.abs(B))
+        if gap > 1e-9:
+            raise RuntimeError(f"the {n_default}-mode {name} is not the leading block of the "
+                               f"{n_stored}-mode one (relative gap {gap:.1e})")
+    meta = dict(source=f"studies.flexible.reduced_model('system', n_modes={n_stored})",
+                command="python -m studies.flexible_modal --regenerate",
+                retained_system_modes=retained, n_structural=n_default,
+                structural_mode_count=n_struct, tol=tol,
+                reference_hz=[float(f_fe[i - 1]) for i in retained],
+                trials={c: [v if isinstance(v, (bool, np.bool_)) or np.isfinite(v) else None
+                            for v in trials[c].tolist()] for c in trials.columns})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, M=M, K=K, meta=np.array(json.dumps(meta)))
+    return meta
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Command line: ``python -m benchmarks.flexible_modal --out DIR``."""
+    """Command line: ``python -m studies.flexible_modal --out DIR`` (or ``--regenerate``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("results/flexible-modal"),
                         help="output directory (default: results/flexible-modal)")
+    parser.add_argument("--regenerate", action="store_true",
+                        help=f"rebuild the flexible-spacecraft problem's stored model {DATA}")
     args = parser.parse_args(argv)
-    run(args.out)
+    if args.regenerate:
+        print(json.dumps(regenerate(), indent=1))
+    else:
+        run(args.out)
 
 
 if __name__ == "__main__":

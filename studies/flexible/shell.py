@@ -65,7 +65,7 @@ was possible:
   instead of six, which rules it out for a free-free spacecraft.
   ``Tria3DSG`` gave exactly six zero frequencies on the free plate and
   converging cantilever parameters, and is used here (the verification
-  tables of :mod:`problems.flexible.study` give the numbers). Its membrane
+  tables of :mod:`studies.flexible.study` give the numbers). Its membrane
   field has no drilling enrichment (constant strain), which is stiff for
   in-plane bending; the spacecraft's low modes are governed by plate
   bending, and the mesh-convergence table of the full model shows what that

@@ -2,15 +2,15 @@
 
 Modules
 -------
-:mod:`~problems.flexible.mesh`
+:mod:`~studies.flexible.mesh`
     Structured triangular meshes of rectangular shell parts.
-:mod:`~problems.flexible.shell`
+:mod:`~studies.flexible.shell`
     Flat-shell element matrices (six degrees of freedom per node) and sparse assembly.
-:mod:`~problems.flexible.spacecraft`
+:mod:`~studies.flexible.spacecraft`
     The finite-element model of the seed's spacecraft and its free-free modes.
-:mod:`~problems.flexible.modal`
+:mod:`~studies.flexible.modal`
     The four modal sets and their hybrid-coordinate reduced models.
-:mod:`~problems.flexible.study`
+:mod:`~studies.flexible.study`
     Plate verification, the Table 1 analogue and the trial-strategy sweep.
 
 The entry point for other parts of the project is :func:`reduced_model`.
@@ -49,7 +49,7 @@ def reduced_model(modal_set: str = "system", n_modes: int | tuple[int, int] | No
     ----------
     modal_set : {"system", "craig-bampton", "macneal-rubin", "component"}
         Which of the seed's modal sets spans the deformation (see
-        :mod:`problems.flexible.modal` for the equations of each).
+        :mod:`studies.flexible.modal` for the equations of each).
     n_modes : int, (int, int) or None
         Retained normal modes. ``"system"``: the number of system modes
         (default 20, the seed's). The component sets: a pair (hub, per
@@ -58,9 +58,9 @@ def reduced_model(modal_set: str = "system", n_modes: int | tuple[int, int] | No
     synthesis_modes : (int, int), optional
         ``"system"`` only: the (hub, per-panel) fixed-interface modes of the
         Craig-Bampton basis the system modes are synthesised from (default
-        :data:`problems.flexible.modal.SYNTHESIS_MODES`).
+        :data:`studies.flexible.modal.SYNTHESIS_MODES`).
     **mesh_options
-        Fields of :class:`~problems.flexible.spacecraft.SpacecraftDesign`,
+        Fields of :class:`~studies.flexible.spacecraft.SpacecraftDesign`,
         e.g. ``element_size`` (m, default 0.125) or ``panel_span`` (m,
         default 1.5).
 

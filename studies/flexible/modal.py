@@ -3,7 +3,7 @@ r"""The four modal sets of the seed, each assembled into a hybrid-coordinate mod
 Hybrid coordinates
 ------------------
 The spacecraft's nodal displacements :math:`\mathbf u` (``N`` degrees of
-freedom, finite-element model of :mod:`problems.flexible.spacecraft`) are
+freedom, finite-element model of :mod:`studies.flexible.spacecraft`) are
 written as a rigid motion of the hub-fixed frame plus a deformation relative
 to it,
 

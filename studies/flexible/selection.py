@@ -602,7 +602,7 @@ def table2(model, zeta: float = ZETA, n_modes: int | None = None,
     Parameters
     ----------
     model
-        Anything with hybrid ``M`` and ``K`` attributes (``problems.flexible.HybridModel``).
+        Anything with hybrid ``M`` and ``K`` attributes (``studies.flexible.HybridModel``).
     zeta : float
         Modal damping ratio of every mode.
     n_modes : int, optional
