@@ -42,7 +42,7 @@ COLUMNS = (
     "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
     "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
-    "energy_growth",
+    "energy_growth", "reference_floor",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -52,7 +52,7 @@ ACCURACY_COLUMNS = (
     "n_lin_solves", "max_pos_residual", "max_vel_residual", "max_energy_error",
     "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
     "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
-    "pos_growth", "energy_growth",
+    "pos_growth", "energy_growth", "reference_floor",
 )
 
 #: Columns that hold text; every other column holds a number or nothing.
