@@ -10,7 +10,8 @@ Two rules run through every verdict here:
 - **Reference floor.** A final error at or below the reference's own accuracy
   (``reference_floor``) says only that the run is at least as accurate as the reference:
   it is shown as "at reference floor", a verdict counts it as the floor itself
-  (:func:`accuracy`), and order fits leave it out.
+  (:func:`accuracy`), and order fits leave it out. Final errors below the round-off
+  plateau (:data:`ORDER_FLOOR`) are masked the same way in verdicts and fits.
 - **Timing spread.** Wall times are medians of repeated solves with their minimum and
   maximum; one run is named faster than another only when its slowest repeat beat the
   other's fastest (:func:`cheapest`). Evaluation counts are exact and need no such rule.
@@ -213,12 +214,19 @@ def at_floor(row) -> bool:
     return floor > 0.0 and not math.isnan(err) and err <= floor
 
 
+def verdict_floor(row) -> float:
+    """The smallest final error a verdict tells apart: the reference floor, and at least
+    the round-off plateau :data:`ORDER_FLOOR` (below it, differences are round-off)."""
+    return max(reference_floor(row), ORDER_FLOOR)
+
+
 def accuracy(row, column: str) -> float:
     """The value of a precision metric that a verdict may use: a final error counts as no
-    smaller than its reference's floor (below it, the reference cannot tell runs apart)."""
+    smaller than :func:`verdict_floor` (below it, the reference or round-off cannot tell
+    runs apart)."""
     value = _num(row.get(column))
     if column == "final_state_error" and not math.isnan(value):
-        return max(value, reference_floor(row))
+        return max(value, verdict_floor(row))
     return value
 
 
@@ -392,8 +400,8 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
     For each measured metric of :data:`TARGET_METRICS` (the final error only where a
     reference exists and the problem is not chaotic) and each level: the cheapest finished
     run reaching it (:func:`cheapest`, by wall time and by evaluations) and the integrators
-    that ran but never reached it, with their best value. A final-error level below the
-    reference floor cannot be checked and says so.
+    that ran but never reached it, with their best value. A final-error level below
+    :func:`verdict_floor` cannot be checked and says so.
     """
     runs = at_sweep_horizon(runs)
     ok = runs[runs["status"] == "ok"]
@@ -405,7 +413,7 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
             continue
         if column == "final_state_error" and is_sensitive(runs):
             continue
-        floor = max((reference_floor(r) for _, r in ok.iterrows()), default=0.0) \
+        floor = max((verdict_floor(r) for _, r in ok.iterrows()), default=0.0) \
             if column == "final_state_error" else 0.0
         best = {}
         for _, r in ok.iterrows():
@@ -414,8 +422,9 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
                 best[r["integrator"]] = min(best.get(r["integrator"], math.inf), value)
         for level in sorted(levels, reverse=True):
             if level < floor:
+                what = "reference floor" if floor > ORDER_FLOOR else "round-off plateau"
                 out.append(Target(column, level, None, None, [],
-                                  f"below the reference floor ({fmt(floor)}): cannot be checked"))
+                                  f"below the {what} ({fmt(floor)}): cannot be checked"))
                 continue
             hits = reaching(ok, column, level)
             missed = [f"{k} (best {fmt(best[k])})" if k in best else f"{k} (no finished run)"

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from reports.analysis import (FIT_MARGIN, accuracy, at_floor, cheapest, convergence,
+from reports.analysis import (FIT_MARGIN, ORDER_FLOOR, accuracy, at_floor, cheapest, convergence,
                               cost_winner, fit, history, targets, timing)
 
 
@@ -77,9 +77,9 @@ def test_a_final_error_at_the_floor_counts_as_the_floor():
     assert at_floor(r) and accuracy(r, "final_state_error") == 6e-12
     above = run("a", final=1e-10, floor=6e-12)
     assert not at_floor(above) and accuracy(above, "final_state_error") == 1e-10
-    # Without a recorded floor (an exact reference, an older store) nothing is masked.
-    assert not at_floor(run("a", final=1e-15)) and accuracy(run("a", final=1e-15),
-                                                            "final_state_error") == 1e-15
+    # Without a recorded floor (an exact reference, an older store) only round-off is.
+    assert not at_floor(run("a", final=1e-15))
+    assert accuracy(run("a", final=1e-15), "final_state_error") == ORDER_FLOOR
 
 
 def test_the_reference_error_does_not_decide_the_cost_at_matched_accuracy():
@@ -114,6 +114,13 @@ def test_targets_name_the_cheapest_run_and_who_never_reaches():
     assert g8.by_wall.row["integrator"] == "a" and "b (best 1e-09)" not in g8.missed
     # No energy was measured: no energy rows.
     assert not any(c == "rel_energy_error" for c, _ in rows)
+
+
+def test_a_target_below_the_round_off_plateau_cannot_be_checked():
+    runs = frame(run("a", h=0.1, final=1e-15), run("b", h=0.1, final=1e-6))
+    rows = {t.target: t for t in targets(runs, (1e-4, 1e-14))
+            if t.column == "final_state_error"}
+    assert rows[1e-4].missed == [] and "round-off plateau" in rows[1e-14].note
 
 
 def test_a_target_below_the_reference_floor_cannot_be_checked():
