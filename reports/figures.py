@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 
 import numpy as np
 from matplotlib import rc_context
@@ -218,7 +219,8 @@ def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) 
             ax.legend(loc="best")
         else:
             _empty(ax, "no finished fixed-step runs")
-        ax.set_title(basis, fontsize=7)
+        # The basis names the reference and its floor: wrapped to the axis' width.
+        ax.set_title(textwrap.fill(basis, 100), fontsize=7)
         _arrange(fig, 1, 1)
         fig.suptitle(title)
         return _svg(fig)
