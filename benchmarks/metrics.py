@@ -47,7 +47,10 @@ def summarize(case: Case, traj: Trajectory) -> dict[str, float]:
     - ``max_energy_error``: max of ``|H_n - H_0|``, and ``rel_energy_error`` that divided by
       the case's ``energy_scale``; NaN where energy is not conserved;
     - ``max_inv:NAME``: max error of each declared invariant;
-    - ``final_state_error`` and ``scd`` (see :func:`reference_error`).
+    - ``final_state_error`` and ``scd`` (see :func:`reference_error`), and
+      ``reference_floor``, the reference's own accuracy
+      (:attr:`~problems.case.Reference.floor`), so that the report can tell a method's
+      error from its reference's; NaN where there is no reference at ``t_final``.
     """
     w = traj.windows
     has_energy = case.mech.has_energy
@@ -60,4 +63,6 @@ def summarize(case: Case, traj: Trajectory) -> dict[str, float]:
     }
     out.update({f"max_{k}": _max(v) for k, v in w.items() if k.startswith("inv:")})
     out["final_state_error"], out["scd"] = reference_error(case, traj)
+    out["reference_floor"] = case.reference.floor \
+        if not math.isnan(out["final_state_error"]) else math.nan
     return out

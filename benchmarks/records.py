@@ -12,7 +12,9 @@
   resuming;
 - :func:`provenance`: the commit, whether the working tree differs from it, the code
   version, the machine and the package versions;
-- :class:`InputError`: bad input, reported on one line before any run starts.
+- :class:`InputError`: bad input, reported on one line before any run starts;
+- :data:`TOLERANCES` and :func:`compare_metric`: when a metric has regressed, the one rule
+  that the drift gate and the report's history agree on.
 
 This module imports neither JAX nor an integrator nor a problem.
 """
@@ -42,7 +44,7 @@ COLUMNS = (
     "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
     "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
-    "energy_growth",
+    "energy_growth", "reference_floor",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -52,7 +54,7 @@ ACCURACY_COLUMNS = (
     "n_lin_solves", "max_pos_residual", "max_vel_residual", "max_energy_error",
     "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
     "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
-    "pos_growth", "energy_growth",
+    "pos_growth", "energy_growth", "reference_floor",
 )
 
 #: Columns that hold text; every other column holds a number or nothing.
@@ -71,6 +73,76 @@ CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
 #: Distributions whose versions are recorded with every invocation.
 PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
             "pandas", "matplotlib", "dask", "distributed")
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How one metric is compared.
+
+    ``lower`` metrics regress when ``current > factor * baseline`` and ``current > floor``;
+    ``higher`` metrics (digits, ``scd``) regress when ``min(current, floor)`` falls below
+    ``min(baseline, floor) - log10(factor)``, the floor there being the digit count beyond
+    which differences are round-off.
+    """
+
+    direction: str  # "lower" or "higher" is better
+    factor: float
+    floor: float
+
+
+#: Per-metric tolerances. The factor of 4 (0.6 digits for ``scd``) leaves room for what a
+#: change of round-off alone does: residuals accumulate it as a random walk, and an adaptive
+#: method's step sequence jumps when a rejected step turns accepted, which was seen to move
+#: IDA's final error on Andrews' mechanism by a factor of 2 after a refactoring of the
+#: mechanics; the regressions the gate is for move metrics by orders of magnitude. The
+#: floors sit a few hundred ulps above the round-off of O(1) quantities, low enough that a
+#: Newton iteration stopped 1e6 times too early shows in the residuals.
+TOLERANCES: dict[str, Tolerance] = {
+    "max_pos_residual": Tolerance("lower", 4.0, 1e-13),
+    "max_vel_residual": Tolerance("lower", 4.0, 1e-13),
+    "rel_energy_error": Tolerance("lower", 4.0, 1e-13),
+    "final_state_error": Tolerance("lower", 4.0, 1e-12),
+    "scd": Tolerance("higher", 4.0, 11.0),
+}
+#: Tolerance of every declared invariant's error (``inv:NAME``).
+INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
+
+
+def tolerance(metric: str) -> Tolerance:
+    """The :class:`Tolerance` of a gated metric (``inv:NAME`` for a declared invariant)."""
+    return INVARIANT_TOLERANCE if metric.startswith("inv:") else TOLERANCES[metric]
+
+
+def _ratio(base: float, cur: float) -> str:
+    return "from 0" if base == 0 else f"x{cur / base:.3g}"
+
+
+def compare_metric(metric: str, base: float | None,
+                   cur: float | None) -> tuple[str | None, str]:
+    """``("regression" | "improvement" | None, change text)`` for one metric, ``None``
+    meaning not measured."""
+    tol = tolerance(metric)
+    if base is None and cur is None:
+        return None, ""
+    if cur is None:
+        return "regression", "no longer measured"
+    if base is None:
+        return None, "newly measured"
+    if not math.isfinite(cur) and not (tol.direction == "higher" and cur > 0):
+        return ("regression", "not finite") if math.isfinite(base) else (None, "")
+    if tol.direction == "lower":
+        if cur > tol.factor * base and cur > tol.floor:
+            return "regression", _ratio(base, cur)
+        if base > tol.factor * cur and base > tol.floor:
+            return "improvement", _ratio(base, cur)
+        return None, ""
+    b, c = min(base, tol.floor), min(cur, tol.floor)
+    digits = math.log10(tol.factor)
+    if c < b - digits:
+        return "regression", f"{c - b:+.2f} digits"
+    if c > b + digits:
+        return "improvement", f"{c - b:+.2f} digits"
+    return None, ""
 
 
 class InputError(ValueError):

@@ -28,6 +28,9 @@ A suite may hold only studies.
 problems and integrators (files relative to the suite file, or module names) before the
 groups are read; it is the only code a suite file can run, and it is trusted as it is.
 
+``targets = [1e-6, 1e-10]`` sets the accuracy targets of the report's per-problem
+target tables (cheapest run reaching each) for this suite's runs.
+
 ``cluster = "local:4"`` or ``cluster = "tcp://HOST:PORT"`` runs the suite on a Dask cluster
 (:mod:`benchmarks.cluster`) unless the command line names an engine (``--jobs`` or
 ``--cluster``).
@@ -57,7 +60,7 @@ NUMBER, STRINGS, NUMBERS = "a number", "a list of strings", "a list of numbers"
 #: Allowed keys and what they hold: top level, and per group.
 TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
             "repeats": "a whole number", "timeout": NUMBER, "budget": NUMBER,
-            "studies": STRINGS, "cluster": "a string", "load": STRINGS}
+            "studies": STRINGS, "cluster": "a string", "load": STRINGS, "targets": NUMBERS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
               "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
 
@@ -86,6 +89,7 @@ RANGES = {
     "timeout": (lambda x: x > 0, "a positive number of seconds (inf for no limit)"),
     "repeats": (lambda x: x >= 1, "at least 1"),
     "budget": (lambda x: math.isfinite(x) and x > 0, "a positive number of seconds"),
+    "targets": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
 }
 
 
@@ -98,7 +102,8 @@ class Suite:
     """A loaded suite file: its runs, their defaults, its studies and the engine it names.
 
     ``repeats``, ``timeout``, ``budget`` and ``cluster`` are ``None`` where the file sets
-    none; ``load`` holds the user code it loaded (resolved paths and module names).
+    none; ``load`` holds the user code it loaded (resolved paths and module names);
+    ``targets`` the report's accuracy targets (empty: the report's defaults).
     """
 
     name: str
@@ -110,6 +115,7 @@ class Suite:
     budget: float | None = None
     cluster: str | None = None
     load: tuple[str, ...] = field(default=())
+    targets: tuple[float, ...] = field(default=())
 
 
 def names() -> list[str]:
@@ -240,4 +246,4 @@ def load(name: str) -> Suite:
                 for r in runs]
     return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
                  timeout, studies, float(data["budget"]) if "budget" in data else None,
-                 cluster, tuple(loaded))
+                 cluster, tuple(loaded), tuple(float(x) for x in data.get("targets", ())))

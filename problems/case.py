@@ -38,6 +38,12 @@ class Reference:
         The only times at which the reference exists; ``None`` for any ``t``.
     scored : tuple of int
         Indices into the stacked state ``(q, v)`` that scores use.
+    floor : float, optional
+        The reference's own accuracy: a bound on the max-norm error of its scored
+        components (published digits, or the stored estimate of a computed reference); 0
+        for a closed form evaluated to round-off. A run's final error at or below it says
+        only that the run is at least as accurate as the reference, so reports show such
+        errors as "at reference floor" and fit no order through them.
     """
 
     kind: str
@@ -45,6 +51,11 @@ class Reference:
     solution: Callable[[float], tuple[np.ndarray, np.ndarray]]
     scored: tuple[int, ...]
     times: tuple[float, ...] | None = None
+    floor: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.floor) and self.floor >= 0.0):
+            raise ValueError(f"reference floor {self.floor!r} must be finite and >= 0")
 
     def available_at(self, t: float) -> bool:
         """Whether the reference exists at time ``t``."""

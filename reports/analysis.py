@@ -1,15 +1,27 @@
-"""What the report computes from stored runs: selections, winners, orders.
+"""What the report computes from stored runs: selections, winners, targets, orders, history.
 
 Pure functions of the ``load_runs`` frame and the stored series; nothing here imports an
 integrator or a problem, and nothing reconstructs what a run knew: energy scales, drift
-classes, nominal orders and sensitivity are columns of the stored record.
+classes, nominal orders, sensitivity and the reference's accuracy are columns of the stored
+record.
+
+Two rules run through every verdict here:
+
+- **Reference floor.** A final error at or below the reference's own accuracy
+  (``reference_floor``) says only that the run is at least as accurate as the reference:
+  it is shown as "at reference floor", a verdict counts it as the floor itself
+  (:func:`accuracy`), and order fits leave it out. Final errors below the round-off
+  plateau (:data:`ORDER_FLOOR`) are masked the same way in verdicts and fits.
+- **Timing spread.** Wall times are medians of repeated solves with their minimum and
+  maximum; one run is named faster than another only when its slowest repeat beat the
+  other's fastest (:func:`cheapest`). Evaluation counts are exact and need no such rule.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -23,10 +35,29 @@ TIE_FACTOR = 10.0
 #: and against the finest run (which carries its own error).
 ORDER_FLOOR = 1e-12
 SELF_ORDER_FLOOR = 1e-10
+#: Order fits use only errors above this multiple of the reference floor: an error within
+#: it may be up to 1/FIT_MARGIN the reference's own, which bends the slope between two
+#: step sizes a factor 2 apart by up to log2(1.1) = 0.14, while a point nearer the floor
+#: bends it by up to a whole order.
+FIT_MARGIN = 10.0
+#: Default accuracy targets of the target tables (a suite's ``targets`` replace them).
+DEFAULT_TARGETS = (1e-4, 1e-8, 1e-12)
 
-PRECISION = (("final_state_error", "final error"), ("max_pos_residual", "max |g|"),
-             ("rel_energy_error", "max rel. energy error"))
-COST = (("wall_s", "wall time [s]"), ("n_f_evals", "evaluations"))
+#: Precision metrics (work-precision y axes, accuracy targets): name on the command line
+#: -> (runs.csv column, label).
+PRECISION_AXES = {"final-error": ("final_state_error", "final error"),
+                  "g": ("max_pos_residual", "max |g|"),
+                  "Gv": ("max_vel_residual", "max |G v + g_t|"),
+                  "energy": ("rel_energy_error", "max rel. energy error")}
+#: Cost metrics (work-precision x axes): name on the command line -> (column, label).
+COST_AXES = {"wall": ("wall_s", "wall time [s]"), "evaluations": ("n_f_evals", "evaluations"),
+             "steps": ("n_steps", "steps")}
+#: The work-precision axes drawn unless the command line chooses others.
+DEFAULT_Y = ("final-error", "g", "energy")
+DEFAULT_X = ("wall", "evaluations")
+#: The metrics the accuracy-target tables cover.
+TARGET_METRICS = ("final-error", "g", "energy")
+LABELS = {column: label for column, label in (*PRECISION_AXES.values(), *COST_AXES.values())}
 
 
 def _num(x) -> float:
@@ -168,6 +199,129 @@ def is_sensitive(runs: pd.DataFrame) -> bool:
     return "sensitive" in runs and bool((runs["sensitive"] == 1).any())
 
 
+# --------------------------------------------------------------------------- floors
+
+def reference_floor(row) -> float:
+    """The accuracy of the reference a run's final error was measured against; 0 where the
+    record does not say (a closed form, or a store written before floors were recorded)."""
+    floor = _num(row.get("reference_floor"))
+    return 0.0 if math.isnan(floor) else floor
+
+
+def at_floor(row) -> bool:
+    """Whether a run's final error is at or below its reference's accuracy (floor > 0)."""
+    err, floor = _num(row.get("final_state_error")), reference_floor(row)
+    return floor > 0.0 and not math.isnan(err) and err <= floor
+
+
+def verdict_floor(row) -> float:
+    """The smallest final error a verdict tells apart: the reference floor, and at least
+    the round-off plateau :data:`ORDER_FLOOR` (below it, differences are round-off)."""
+    return max(reference_floor(row), ORDER_FLOOR)
+
+
+def accuracy(row, column: str) -> float:
+    """The value of a precision metric that a verdict may use: a final error counts as no
+    smaller than :func:`verdict_floor` (below it, the reference or round-off cannot tell
+    runs apart)."""
+    value = _num(row.get(column))
+    if column == "final_state_error" and not math.isnan(value):
+        return max(value, verdict_floor(row))
+    return value
+
+
+def floor_text(row) -> str:
+    """How a final error at the floor is shown."""
+    return f"at reference floor (≤ {fmt(reference_floor(row))})"
+
+
+# --------------------------------------------------------------------------- timing
+
+@dataclass(frozen=True)
+class Timing:
+    """Wall time of a run's timed solves: median, fastest, slowest and how many."""
+
+    median: float
+    low: float
+    high: float
+    repeats: int
+
+    @property
+    def measured(self) -> bool:
+        """Whether the spread was measured (two solves or more)."""
+        return self.repeats >= 2
+
+    def text(self) -> str:
+        if math.isnan(self.median):
+            return ""
+        if not self.measured:
+            return f"{fmt(self.median)} (1 solve)"
+        return f"{fmt(self.median)} ({fmt(self.low)}-{fmt(self.high)}, {self.repeats} solves)"
+
+
+def timing(row) -> Timing:
+    """The :class:`Timing` of a run; the spread collapses to the median where the record
+    lacks it (a store written before it was recorded counts as one solve)."""
+    median = _num(row.get("wall_s"))
+    low, high, n = _num(row.get("wall_min_s")), _num(row.get("wall_max_s")), \
+        _num(row.get("repeats"))
+    if math.isnan(low) or math.isnan(high):
+        return Timing(median, median, median, 1)
+    return Timing(median, low, high, 1 if math.isnan(n) else int(n))
+
+
+@dataclass
+class Pick:
+    """The cheapest of some candidate runs by one cost, and who cannot be told from it.
+
+    ``row`` is the cheapest run (None without candidates); ``winner`` says whether it is
+    named as the winner (by wall time: only when its slowest solve beat the fastest solve of
+    every other candidate); ``ties`` are the integrators whose cost cannot be told from its.
+    """
+
+    row: pd.Series | None
+    cost: str
+    winner: bool = False
+    ties: list[str] = field(default_factory=list)
+    text: str = "none"
+
+
+def cheapest(candidates: pd.DataFrame, cost: str) -> Pick:
+    """The cheapest of ``candidates`` (one run per integrator) by ``cost``.
+
+    ``cost`` is ``"wall_s"`` or an exact count (``"n_f_evals"``, ``"n_steps"``). By wall
+    time the cheapest run is named the winner only when the difference exceeds the timing
+    spread: every other candidate's fastest solve is slower than its slowest; candidates
+    whose spreads overlap its are ties, and a spread that was not measured (one solve)
+    names no winner. Counts are exact: only equal counts tie.
+    """
+    cands = candidates[candidates[cost].notna()]
+    if cands.empty:
+        return Pick(None, cost, text="none")
+    cands = cands.sort_values(cost, kind="stable")
+    best = cands.iloc[0]
+    others = cands.iloc[1:]
+    name = f"{best['integrator']} ({setting(best)})"
+    if cost != "wall_s":
+        ties = [r["integrator"] for _, r in others.iterrows() if r[cost] == best[cost]]
+        text = f"{name}: {fmt(best[cost])} {LABELS[cost]}"
+        if ties:
+            text += f"; tied: {', '.join(ties)}"
+        return Pick(best, cost, not ties, ties, text)
+    t = timing(best)
+    ties = [r["integrator"] for _, r in others.iterrows() if timing(r).low <= t.high]
+    unmeasured = not t.measured or any(not timing(r).measured for _, r in others.iterrows())
+    text = f"{name}: {t.text()} s"
+    if unmeasured and len(cands) > 1:
+        text += "; fastest, but no winner: a timing spread was not measured (one solve)"
+        return Pick(best, cost, False, ties, text)
+    if ties:
+        text += f"; no winner: within the timing spread of {', '.join(ties)}"
+    return Pick(best, cost, not ties, ties, text)
+
+
+# --------------------------------------------------------------------------- accuracy
+
 def accuracy_metric(runs: pd.DataFrame) -> str | None:
     """The accuracy that cost is matched on: the final error where a reference exists and
     the problem is not chaotic (there it measures how fast nearby solutions separate), else
@@ -181,34 +335,104 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
     return None
 
 
-def cost_winner(runs: pd.DataFrame) -> Winner:
-    """Cheapest method (wall time) at matched accuracy.
+def reaching(runs: pd.DataFrame, column: str, target: float) -> pd.DataFrame:
+    """The finished runs whose :func:`accuracy` in ``column`` is at or below ``target``."""
+    ok = runs[runs["status"] == "ok"]
+    values = np.array([accuracy(r, column) for _, r in ok.iterrows()], dtype=float)
+    return ok[values <= target] if len(ok) else ok
 
-    The target is the median over methods of the best accuracy each reached; each method's
-    cost is its cheapest finished run at or below the target; methods that never reach it
-    are named as such.
+
+def per_integrator(runs: pd.DataFrame, cost: str) -> pd.DataFrame:
+    """The cheapest run by ``cost`` of each integrator."""
+    runs = runs[runs[cost].notna()]
+    if runs.empty:
+        return runs
+    return runs.loc[runs.groupby("integrator")[cost].idxmin()]
+
+
+def cost_winner(runs: pd.DataFrame) -> Winner:
+    """Cheapest method at matched accuracy, by wall time (with its spread) and by
+    evaluations.
+
+    The target is the median over methods of the best accuracy each reached (a final error
+    counts as no better than its reference's floor); each method's cost is its cheapest
+    finished run at or below the target; methods that never reach it are named as such.
     """
     runs = at_sweep_horizon(runs)
     metric = accuracy_metric(runs)
     if metric is None:
         return Winner(None, math.nan, "no accuracy measured")
-    ok = runs[(runs["status"] == "ok") & runs[metric].notna() & runs["wall_s"].notna()].copy()
-    ok[metric] = ok[metric].astype(float)
+    ok = runs[(runs["status"] == "ok") & runs[metric].notna()]
     if ok.empty:
         return Winner(None, math.nan, "no finished run with a measured accuracy")
-    best = ok.groupby("integrator")[metric].min()
+    best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
+        .groupby("integrator")["_acc"].min()
     target = float(np.median(best.values))
-    hits = ok[ok[metric] <= target]
-    cheapest = hits.loc[hits.groupby("integrator")["wall_s"].idxmin()]
-    row = cheapest.loc[cheapest["wall_s"].astype(float).idxmin()]
-    missed = sorted(set(best.index) - set(cheapest["integrator"]))
-    label = dict(PRECISION)[metric]
-    verdict = (f"{row['integrator']} ({setting(row)}): {fmt(row['wall_s'])} s, "
-               f"{fmt(row['n_f_evals'])} evaluations for {label} ≤ {fmt(target)} at "
-               f"t_end = {fmt(row['t_end'])}")
+    hits = reaching(ok, metric, target)
+    by_wall = cheapest(per_integrator(hits, "wall_s"), "wall_s")
+    by_evals = cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals")
+    missed = sorted(set(best.index) - set(hits["integrator"]))
+    verdict = (f"{LABELS[metric]} ≤ {fmt(target)} at t_end = {fmt(ok['t_end'].iloc[0])}: "
+               f"by wall time {by_wall.text}; by evaluations {by_evals.text}")
     if missed:
         verdict += f"; not reached by {', '.join(missed)}"
-    return Winner(row["integrator"], float(row["wall_s"]), verdict)
+    row = by_wall.row
+    return Winner(row["integrator"] if by_wall.winner else None,
+                  _num(row["wall_s"]) if row is not None else math.nan, verdict)
+
+
+@dataclass
+class Target:
+    """One row of an accuracy-target table: the cheapest runs reaching ``target`` in
+    ``column``, by wall time and by evaluations, and the integrators that never do."""
+
+    column: str
+    target: float
+    by_wall: Pick | None
+    by_evals: Pick | None
+    missed: list[str]
+    note: str = ""
+
+
+def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
+    """Accuracy-target rows of one problem's runs at the sweep horizon.
+
+    For each measured metric of :data:`TARGET_METRICS` (the final error only where a
+    reference exists and the problem is not chaotic) and each level: the cheapest finished
+    run reaching it (:func:`cheapest`, by wall time and by evaluations) and the integrators
+    that ran but never reached it, with their best value. A final-error level below
+    :func:`verdict_floor` cannot be checked and says so.
+    """
+    runs = at_sweep_horizon(runs)
+    ok = runs[runs["status"] == "ok"]
+    ran = sorted(set(runs["integrator"]))
+    out = []
+    for name in TARGET_METRICS:
+        column = PRECISION_AXES[name][0]
+        if not ok[column].notna().any():
+            continue
+        if column == "final_state_error" and is_sensitive(runs):
+            continue
+        floor = max((verdict_floor(r) for _, r in ok.iterrows()), default=0.0) \
+            if column == "final_state_error" else 0.0
+        best = {}
+        for _, r in ok.iterrows():
+            value = accuracy(r, column)
+            if not math.isnan(value):
+                best[r["integrator"]] = min(best.get(r["integrator"], math.inf), value)
+        for level in sorted(levels, reverse=True):
+            if level < floor:
+                what = "reference floor" if floor > ORDER_FLOOR else "round-off plateau"
+                out.append(Target(column, level, None, None, [],
+                                  f"below the {what} ({fmt(floor)}): cannot be checked"))
+                continue
+            hits = reaching(ok, column, level)
+            missed = [f"{k} (best {fmt(best[k])})" if k in best else f"{k} (no finished run)"
+                      for k in ran if k not in set(hits["integrator"])]
+            out.append(Target(column, level, cheapest(per_integrator(hits, "wall_s"), "wall_s"),
+                              cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals"),
+                              missed))
+    return out
 
 
 def options(row) -> dict:
@@ -232,23 +456,46 @@ def final_state(row) -> np.ndarray | None:
 
 @dataclass
 class Convergence:
-    """Error against step size of one fixed-step integrator."""
+    """Error against step size of one fixed-step integrator, and the fit through it.
+
+    ``fitted`` marks the points the order was fitted from: those above ``threshold``, the
+    larger of the round-off plateau and :data:`FIT_MARGIN` times the reference floor
+    ``floor``. ``order`` is NaN with fewer than two fitted step sizes.
+    """
 
     integrator: str
     h: np.ndarray
     err: np.ndarray
     order: float
-    n_fit: int
+    fitted: np.ndarray
     nominal: float
+    threshold: float
+    floor: float = 0.0
+
+    @property
+    def n_fit(self) -> int:
+        return int(self.fitted.sum())
+
+
+def fit(integrator: str, h, err, nominal: float, plateau: float,
+        floor: float = 0.0) -> Convergence:
+    """Fit the observed order through the points above the round-off ``plateau`` and
+    :data:`FIT_MARGIN` times the reference ``floor``."""
+    h, err = np.asarray(h, dtype=float), np.asarray(err, dtype=float)
+    threshold = max(plateau, FIT_MARGIN * floor)
+    fitted = np.isfinite(err) & (err > threshold) & (h > 0)
+    order, _ = fit_order(h[fitted], err[fitted])
+    return Convergence(integrator, h, err, order, fitted, nominal, threshold, floor)
 
 
 def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
     """Observed orders of the fixed-step methods and what their error is measured against.
 
-    The error is the final error against the case's reference where one exists. Without
-    one, it is the max-norm distance of the final state to that of the finest finished run
-    of the highest nominal order at the same horizon (a self-convergence estimate; that
-    run is left out). Uses the horizon with the most distinct step sizes.
+    The error is the final error against the case's reference where one exists, fitted
+    above its floor. Without one, it is the max-norm distance of the final state to that of
+    the finest finished run of the highest nominal order at the same horizon (a
+    self-convergence estimate; that run is left out). Uses the horizon with the most
+    distinct step sizes.
     """
     fixed = runs[(runs["status"] == "ok") & runs["h"].notna()].copy()
     if fixed.empty:
@@ -256,9 +503,14 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
     counts = fixed.groupby("t_end")["h"].nunique()
     horizon = max(t for t, c in counts.items() if c == counts.max())
     fixed = fixed[fixed["t_end"] == horizon]
+    floor = 0.0
     if fixed["final_state_error"].notna().any():
         fixed["_err"] = fixed["final_state_error"].astype(float)
-        basis, floor = "final error against the reference", ORDER_FLOOR
+        floor = max(reference_floor(r) for _, r in fixed.iterrows())
+        basis, plateau = "final error against the reference", ORDER_FLOOR
+        if floor > 0:
+            basis += (f" (itself accurate to {fmt(floor)}: only errors above "
+                      f"{fmt(max(plateau, FIT_MARGIN * floor))} are fitted)")
     else:
         fixed["_order"] = fixed["nominal_order"].astype(float).fillna(0.0)
         ref = fixed.sort_values(["_order", "h"], ascending=[False, True]).iloc[0]
@@ -274,12 +526,76 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
         fixed["_err"] = errs
         basis = (f"max-norm distance of the final (q, v) to the finest run "
                  f"({ref['integrator']}, {setting(ref)}), no reference exists")
-        floor = SELF_ORDER_FLOOR
+        plateau = SELF_ORDER_FLOOR
     out = []
     for key, grp in fixed.groupby("integrator"):
         grp = grp.sort_values("h")
-        h, err = grp["h"].astype(float).values, grp["_err"].values
-        order, n = fit_order(h, err, floor=floor)
         nominal = _num(grp["nominal_order"].iloc[0]) if "nominal_order" in grp else math.nan
-        out.append(Convergence(key, h, err, order, n, nominal))
+        out.append(fit(key, grp["h"].values, grp["_err"].values, nominal, plateau, floor))
     return out, f"t_end = {fmt(horizon)}; error: {basis}"
+
+
+# --------------------------------------------------------------------------- history
+
+#: The metrics the drift gate compares, in the gate's own terms.
+GATE_METRICS = tuple(records.TOLERANCES)
+
+
+@dataclass
+class History:
+    """The gate's metrics across commits.
+
+    ``commits``: one row per commit (``commit``, ``label``, ``started``, ``dirty``,
+    ``runs``), oldest first; ``values``: metric -> frame of run identity x commit label
+    (the latest run of each identity within each commit; NaN where not measured);
+    ``regressions``: ``(identity, metric, from label, to label, change)`` between
+    consecutive commits that measured the run, by the gate's rule
+    (:func:`benchmarks.records.compare_metric`; a finished run that no longer finishes
+    counts too). Runs of chaotic problems are shown but, as in the gate, never regress.
+    """
+
+    commits: pd.DataFrame
+    values: dict[str, pd.DataFrame]
+    regressions: list[tuple[str, str, str, str, str]]
+
+
+def history(runs: pd.DataFrame) -> History:
+    """The :class:`History` of every stored run."""
+    key = runs["commit"].fillna("")
+    groups = runs.assign(_commit=key).groupby("_commit", sort=False)
+    commits = pd.DataFrame({
+        "commit": [c for c, _ in groups],
+        "started": [float(g["session_started"].min()) for _, g in groups],
+        "dirty": [bool(g["dirty"].astype(bool).any()) for _, g in groups],
+        "runs": [len(g) for _, g in groups],
+    }).sort_values("started", kind="stable").reset_index(drop=True)
+    commits["label"] = [(c[:10] or "unknown") + ("+" if d else "")
+                        for c, d in zip(commits["commit"], commits["dirty"])]
+    per_commit = {label: latest(runs[key == commit])
+                  for commit, label in zip(commits["commit"], commits["label"])}
+    rows = {label: {records.identity(r): r for _, r in sub.iterrows()}
+            for label, sub in per_commit.items()}
+    identities = sorted({i for by_id in rows.values() for i in by_id})
+    values = {m: pd.DataFrame(
+        [[_num(rows[c][i].get(m)) if i in rows[c] and is_ok(rows[c][i]) else math.nan
+          for c in commits["label"]] for i in identities],
+        index=identities, columns=list(commits["label"]), dtype=float) for m in GATE_METRICS}
+    regressions = []
+    labels = list(commits["label"])
+    for ident in identities:
+        seen = [(c, rows[c][ident]) for c in labels if ident in rows[c]]
+        for (c0, r0), (c1, r1) in zip(seen, seen[1:]):
+            if r1.get("sensitive") == 1:
+                continue
+            if is_ok(r0) and not is_ok(r1):
+                regressions.append((ident, "status", c0, c1, f"ok -> {r1['status']}"))
+                continue
+            if not (is_ok(r0) and is_ok(r1)):
+                continue
+            for m in GATE_METRICS:
+                b, c = _num(r0.get(m)), _num(r1.get(m))
+                kind, change = records.compare_metric(
+                    m, None if math.isnan(b) else b, None if math.isnan(c) else c)
+                if kind == "regression":
+                    regressions.append((ident, m, c0, c1, change))
+    return History(commits, values, regressions)

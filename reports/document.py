@@ -4,10 +4,13 @@ Both outputs come from the same blocks, so they hold the same content. Every pie
 is plain text (run messages come from user input): the HTML renderer escapes all of it and
 the Markdown renderer escapes what Markdown or embedded HTML would interpret. Figures are
 SVG text: written as files beside ``report.md`` and inlined, sanitised, into the HTML.
+Figure names come from user text (problem specs, study names): :func:`file_stem` bounds
+and sanitises them before they name a file.
 """
 
 from __future__ import annotations
 
+import hashlib
 import html
 import re
 from dataclasses import dataclass, field
@@ -16,11 +19,28 @@ from pathlib import Path
 from reports.svg import clean
 
 
+#: Longest figure file stem: far below any file system's name limit (255 bytes) with room
+#: for the ``.svg`` suffix and any prefix a caller adds.
+MAX_STEM = 80
+
+
+def file_stem(name: str) -> str:
+    """A file stem for ``name``: lower-case letters, digits and ``-`` only, at most
+    :data:`MAX_STEM` characters. A name that had to change gets a short hash of its full
+    text, so different names (``pendulum:L=1`` and ``pendulum:L-1``) never share a file."""
+    slug = re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "figure"
+    if slug == name and len(slug) <= MAX_STEM:
+        return slug
+    digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:10]
+    return f"{slug[:MAX_STEM - len(digest) - 1].rstrip('-')}-{digest}"
+
+
 @dataclass
 class Heading:
     level: int  # 1 = title, 2 = section, 3 = subsection
     text: str
     anchor: str = ""
+    collapsible: bool = False  # a section (level 2) that a reader can fold away
 
 
 @dataclass
@@ -42,7 +62,7 @@ class Table:
 
 @dataclass
 class Figure:
-    name: str  # file stem, unique in the report
+    name: str  # unique in the report; any text (the file is named by file_stem(name))
     svg: str
     caption: str = ""
     trusted: bool = True  # drawn by the report itself; False keeps its styles out of the page
@@ -56,14 +76,15 @@ class Document:
     def add(self, *blocks) -> None:
         self.blocks.extend(blocks)
 
-    def heading(self, level: int, text: str) -> Heading:
-        """Append a heading with an anchor unique in the document."""
+    def heading(self, level: int, text: str, collapsible: bool = False) -> Heading:
+        """Append a heading with an anchor unique in the document; ``collapsible`` folds a
+        section (level 2) and everything up to the next section in the HTML page."""
         base = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "section"
         taken = {b.anchor for b in self.blocks if isinstance(b, Heading)}
         anchor, k = base, 2
         while anchor in taken:
             anchor, k = f"{base}-{k}", k + 1
-        block = Heading(level, text, anchor)
+        block = Heading(level, text, anchor, collapsible)
         self.blocks.append(block)
         return block
 
@@ -105,10 +126,11 @@ def to_markdown(doc: Document, out_dir: Path,
             lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in b.rows]
             lines.append("")
         elif isinstance(b, Figure):
-            path = out_dir / figure_dir / f"{b.name}.svg"
+            stem = file_stem(b.name)
+            path = out_dir / figure_dir / f"{stem}.svg"
             path.write_text(clean(b.svg, "", keep_style=b.trusted))
             written.append(path)
-            lines += [f"![{_md_cell(b.name)}]({figure_dir}/{b.name}.svg)", ""]
+            lines += [f"![{_md_cell(b.name)}]({figure_dir}/{stem}.svg)", ""]
             if b.caption:
                 lines += [f"*{_md_text(b.caption)}*", ""]
     return "\n".join(lines), written
@@ -138,6 +160,8 @@ caption { caption-side: top; text-align: left; font-style: italic; padding: 0.2e
 figure { margin: 1em 0 2em; }
 figure svg { max-width: 100%; height: auto; }
 figcaption { font-style: italic; font-size: 0.9em; }
+details.section > summary { cursor: pointer; list-style-position: outside; }
+details.section > summary > h2 { display: inline-block; margin: 1.2em 0 0.4em; }
 footer { margin-top: 3em; font-size: 0.85em; color: #444; border-top: 1px solid #bbb; }
 """
 
@@ -162,19 +186,29 @@ def to_html(doc: Document, footer: list[str] | None = None) -> str:
     toc: list[str] = []
     body: list[str] = []
     open_sub = False
+    open_details = False
     n_fig = 0
     for b in doc.blocks:
         if isinstance(b, Heading):
+            heading = f'<h{b.level} id="{esc(b.anchor)}">{esc(b.text)}</h{b.level}>'
             if b.level == 2:
                 if open_sub:
                     toc.append("</ul></li>")
                     open_sub = False
+                if open_details:
+                    body.append("</details>")
+                    open_details = False
                 toc.append(f'<li><a href="#{esc(b.anchor)}">{esc(b.text)}</a>')
                 toc.append("<ul>")
                 open_sub = True
+                if b.collapsible:
+                    # Closed: the contents stay short; a link to anything inside opens it
+                    # (browsers open a <details> that holds the target of a fragment link).
+                    heading = f'<details class="section"><summary>{heading}</summary>'
+                    open_details = True
             elif b.level == 3 and open_sub:
                 toc.append(f'<li><a href="#{esc(b.anchor)}">{esc(b.text)}</a></li>')
-            body.append(f'<h{b.level} id="{esc(b.anchor)}">{esc(b.text)}</h{b.level}>')
+            body.append(heading)
         elif isinstance(b, Para):
             body.append(f"<p>{esc(b.text)}</p>")
         elif isinstance(b, Bullets):
@@ -195,9 +229,11 @@ def to_html(doc: Document, footer: list[str] | None = None) -> str:
             n_fig += 1
             svg = clean(b.svg, f"f{n_fig}-", keep_style=b.trusted)
             cap = f"<figcaption>{esc(b.caption)}</figcaption>" if b.caption else ""
-            body.append(f'<figure id="fig-{esc(b.name)}">{svg}{cap}</figure>')
+            body.append(f'<figure id="fig-{file_stem(b.name)}">{svg}{cap}</figure>')
     if open_sub:
         toc.append("</ul></li>")
+    if open_details:
+        body.append("</details>")
     # Empty sub-lists are legal but render as stray bullets in some browsers.
     toc_html = re.sub(r"<ul></ul>", "", "".join(toc))
     foot = "".join(f"<p>{esc(line)}</p>" for line in (footer or []))

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 
 import numpy as np
 from matplotlib import rc_context
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 
-from reports.analysis import COST, PRECISION, Convergence, fmt
+from reports.analysis import LABELS, Convergence, History, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
 LOG_FLOOR = 1e-17
@@ -138,14 +139,17 @@ def drift(entries: list[dict], colors: dict, title: str) -> str:
         return _svg(fig)
 
 
-def work_precision(runs, colors: dict, title: str) -> str:
-    """Precision (final error, max ``|g|``, max relative energy error) against cost (wall
-    time, evaluations), log-log, one line per integrator through its finished runs."""
+def work_precision(runs, colors: dict, title: str, x: tuple[str, ...], y: tuple[str, ...],
+                   floor: float = 0.0) -> str:
+    """Precision metrics ``y`` (rows) against cost metrics ``x`` (columns), runs.csv column
+    names, log-log, one line per integrator through its finished runs. A dashed line marks
+    the reference floor ``floor`` in the final-error panels (errors below it are the
+    reference's)."""
     with rc_context(RC):
-        fig, axes = _figure(len(PRECISION), len(COST), 8.0, 8.5)
+        fig, axes = _figure(len(y), len(x), 4.0 * len(x), 2.85 * len(y))
         ok = runs[runs["status"] == "ok"]
-        for i, (pcol, plabel) in enumerate(PRECISION):
-            for j, (ccol, clabel) in enumerate(COST):
+        for i, pcol in enumerate(y):
+            for j, ccol in enumerate(x):
                 ax = axes[i, j]
                 drawn = 0
                 for key, grp in ok.groupby("integrator"):
@@ -158,10 +162,13 @@ def work_precision(runs, colors: dict, title: str) -> str:
                               color=color, label=key)
                     drawn += 1
                 if drawn:
-                    ax.set_xlabel(clabel)
-                    ax.set_ylabel(plabel)
+                    ax.set_xlabel(LABELS[ccol])
+                    ax.set_ylabel(LABELS[pcol])
+                    if pcol == "final_state_error" and floor > 0:
+                        ax.axhline(floor, color="0.3", ls="--", lw=0.8,
+                                   label=f"reference floor {fmt(floor)}")
                 else:
-                    _empty(ax, f"{plabel}: not measured" if pcol != "final_state_error"
+                    _empty(ax, f"{LABELS[pcol]}: not measured" if pcol != "final_state_error"
                            else "final error: no reference")
         handles, labels = [], []
         for ax in axes.flat:
@@ -169,14 +176,16 @@ def work_precision(runs, colors: dict, title: str) -> str:
                 if lab not in labels:
                     handles.append(h)
                     labels.append(lab)
-        _arrange(fig, len(PRECISION), len(COST), (handles, labels), ncols=5)
+        _arrange(fig, len(y), len(x), (handles, labels), ncols=5)
         fig.suptitle(title)
         return _svg(fig)
 
 
 def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) -> str:
     """Error against step size, log-log, with fitted and nominal orders in the legend and a
-    dashed slope of the nominal order through each method's finest point."""
+    dashed slope of the nominal order through each method's finest fitted point. Points
+    left out of the fit (at the reference floor or round-off) are drawn hollow, and the
+    reference floor as a dotted line."""
     with rc_context(RC):
         fig, axes = _figure(1, 1, 6.0, 4.2)
         ax = axes[0, 0]
@@ -188,22 +197,71 @@ def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) 
             color, marker = colors[c.integrator]
             fitted = "n/a" if math.isnan(c.order) else f"{c.order:.2f}"
             nominal = "n/a" if math.isnan(c.nominal) else fmt(c.nominal)
-            ax.loglog(c.h[keep], _floor(c.err[keep]), marker=marker, ms=4, lw=1.0, color=color,
+            ax.loglog(c.h[keep], _floor(c.err[keep]), lw=1.0, color=color,
                       label=f"{c.integrator}: fitted {fitted}, nominal {nominal}")
-            if not math.isnan(c.nominal) and keep.sum() >= 2:
-                h0, e0 = c.h[keep][-1], max(c.err[keep][-1], LOG_FLOOR)
+            ax.loglog(c.h[c.fitted], _floor(c.err[c.fitted]), ls="none", marker=marker, ms=4,
+                      color=color)
+            out = keep & ~c.fitted
+            ax.loglog(c.h[out], _floor(c.err[out]), ls="none", marker=marker, ms=5,
+                      mfc="none", color=color)
+            if not math.isnan(c.nominal) and c.fitted.any():
+                h0, e0 = c.h[c.fitted][-1], c.err[c.fitted][-1]
                 hs = np.array([c.h[keep][0], h0])
                 ax.loglog(hs, e0 * (hs / h0) ** c.nominal, ls="--", lw=0.8, color=color)
             drawn += 1
         if drawn:
+            floor = max((c.floor for c in convs), default=0.0)
+            if floor > 0:
+                ax.axhline(floor, color="0.3", ls=":", lw=0.8,
+                           label=f"reference floor {fmt(floor)}")
             ax.set_xlabel("h")
             ax.set_ylabel("error")
             ax.legend(loc="best")
         else:
             _empty(ax, "no finished fixed-step runs")
-        ax.set_title(basis, fontsize=7)
+        # The basis names the reference and its floor: wrapped to the axis' width.
+        ax.set_title(textwrap.fill(basis, 100), fontsize=7)
         _arrange(fig, 1, 1)
         fig.suptitle(title)
+        return _svg(fig)
+
+
+def history(hist: History) -> str:
+    """The gate's metrics against commit, one small panel per metric, one grey line per run
+    identity; red crosses mark the regressions of :class:`reports.analysis.History`."""
+    metrics = list(hist.values)
+    cols = min(3, len(metrics))
+    rows = math.ceil(len(metrics) / cols)
+    labels = list(hist.commits["label"])
+    x = np.arange(len(labels))
+    with rc_context(RC):
+        fig, axes = _figure(rows, cols, 3.3 * cols, 2.6 * rows)
+        for ax, metric in zip(axes.flat, metrics):
+            frame = hist.values[metric]
+            lower = metric != "scd"
+            values = frame.to_numpy(dtype=float)
+            for line in values:
+                if np.isfinite(line).any():
+                    y = _floor(line) if lower else line
+                    ax.plot(x, y, color="0.55", lw=0.7, marker=".", ms=3)
+            bad = [(labels.index(c1), frame.loc[ident, c1]) for ident, m, _, c1, _
+                   in hist.regressions if m == metric]
+            if bad:
+                bx, by = zip(*bad)
+                by = np.asarray(by, dtype=float)
+                ax.plot(bx, _floor(by) if lower else by, "x", color="tab:red", ms=7, mew=2,
+                        label="regression")
+            if lower and np.isfinite(values).any():
+                ax.set_yscale("log")
+            if not np.isfinite(values).any():
+                _empty(ax, f"{LABELS.get(metric, metric)}: not measured")
+                continue
+            ax.set_xticks(x, labels, rotation=30, ha="right")
+            ax.set_title(LABELS.get(metric, metric))
+        for ax in list(axes.flat)[len(metrics):]:
+            ax.set_visible(False)
+        _arrange(fig, rows, cols)
+        fig.subplots_adjust(hspace=0.7)
         return _svg(fig)
 
 

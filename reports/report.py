@@ -1,11 +1,12 @@
 """Build the report from a results store: ``report.md`` (figures beside it) and ``report.html``.
 
 Sections, in order: the headline (which method wins each problem for drift, for energy and
-for cost at matched accuracy), its history across commits (when the store holds several),
-the seed reproduction, one section per problem (summary table, drift series, work-precision
-diagrams, convergence orders), the study sections (tables and figures stored by study
-suites), the scaling section when a scaling benchmark's output folder is given
-(:mod:`reports.scaling`) and the provenance of the runs shown.
+for cost at matched accuracy), the history of the drift gate's metrics across commits
+(when the store holds several), the seed reproduction, one collapsible section per problem
+(summary table, drift series, work-precision diagrams, accuracy targets, convergence
+orders), the study sections (tables and figures stored by study suites), the scaling
+section when a scaling benchmark's output folder is given (:mod:`reports.scaling`) and the
+provenance of the runs shown.
 
 Per-problem sections show the latest run of each identity (problem, integrator, setting,
 horizon); the history uses every stored run.
@@ -23,9 +24,11 @@ import pandas as pd
 
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
 from reports import figures, scaling as scaling_section, seed
-from reports.analysis import (Convergence, at_sweep_horizon, convergence, cost_winner,
-                              drift_winner, energy_winner, fmt, is_sensitive, latest,
-                              representative, setting, text)
+from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
+                              PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
+                              convergence, cost_winner, drift_winner, energy_winner,
+                              floor_text, fmt, history, is_sensitive, latest, reference_floor,
+                              representative, setting, targets as target_rows, text, timing)
 from reports.document import Bullets, Document, Figure, Para, Table, to_html, to_markdown
 from reports.svg import SvgError, clean
 
@@ -36,14 +39,31 @@ NOT_APPLICABLE = "n/a"
 MAX_STUDY_ROWS = 60
 
 
-def build(db_path, out_dir, scaling=None) -> list[Path]:
+def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
+          y=DEFAULT_Y) -> list[Path]:
     """Write ``report.md``, its SVG figures and ``report.html`` under ``out_dir``.
 
-    ``scaling`` is the output folder of ``python -m benchmarks.scaling``, whose results
-    get a section of their own (:class:`reports.scaling.ScalingError` if it holds none).
-    Returns the paths written, the two reports first.
+    Parameters
+    ----------
+    db_path, out_dir : path
+        The results store, and the folder the report is written to.
+    scaling : path, optional
+        The output folder of ``python -m benchmarks.scaling``, whose results get a section
+        of their own (:class:`reports.scaling.ScalingError` if it holds none).
+    targets : sequence of float
+        The accuracy targets of each problem's target table.
+    x, y : sequence of str
+        The work-precision diagrams' cost axes (keys of
+        :data:`~reports.analysis.COST_AXES`) and precision axes (keys of
+        :data:`~reports.analysis.PRECISION_AXES`).
+
+    Returns
+    -------
+    list of Path
+        The paths written, the two reports first.
     """
     db_path, out_dir = Path(db_path), Path(out_dir)
+    wp = (tuple(COST_AXES[k][0] for k in x), tuple(PRECISION_AXES[k][0] for k in y))
     scaling_data = scaling_section.load(scaling) if scaling is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = load_runs(db_path)
@@ -62,7 +82,8 @@ def build(db_path, out_dir, scaling=None) -> list[Path]:
     _history(doc, runs)
     seed.section(doc, current, series, colors)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
-        _problem(doc, problem, current[current["problem"] == problem], series, colors)
+        _problem(doc, problem, current[current["problem"] == problem], series, colors,
+                 tuple(targets), wp)
     _studies(doc, artifacts)
     if scaling_data is not None:
         scaling_section.section(doc, scaling_data)
@@ -84,9 +105,10 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
     return (f"{len(current)} runs shown (the latest of each problem, integrator, setting and "
             f"horizon) out of {len(runs)} stored, over {runs['session'].nunique()} invocations; "
             f"{n_bad} of those shown did not finish (status failed, error or timeout). Wall "
-            f"times are the median of each run's timed solves (runs.csv's repeats column "
-            f"counts them) on the machine named in the provenance section and are only "
-            f"comparable within one invocation.")
+            f"times are the median of each run's timed solves, with the fastest and slowest "
+            f"and their number in brackets, on the machine named in the provenance section; "
+            f"they are only comparable within one invocation, and one run is called faster "
+            f"than another only when its slowest solve beat the other's fastest.")
 
 
 # --------------------------------------------------------------------------- headline
@@ -108,9 +130,13 @@ def _headline(doc: Document, current: pd.DataFrame) -> None:
     doc.add(Para("Drift: the smallest max(|g|, |G v + g_t|) among each method's run at the "
                  "longest horizon (methods within a factor of 10 are named as ties). Energy: "
                  "the smallest max |H - H0| / energy scale among the same runs, with its growth "
-                 "class. Cost: at the horizon of the sweeps, the cheapest run (wall time) whose "
-                 "accuracy (final error where a reference exists, else the energy error) is at "
-                 "or below the median of the best accuracies the methods reached."))
+                 "class. Cost: at the horizon of the sweeps, the cheapest run, by wall time and "
+                 "by force evaluations, whose accuracy (final error where a reference exists, "
+                 "else the energy error) is at or below the median of the best accuracies the "
+                 "methods reached; a final error counts as no better than the reference's own "
+                 "accuracy, and by wall time a winner is named only when the difference exceeds "
+                 "the timing spread. Each problem's section has the cheapest run for fixed "
+                 "accuracy targets."))
     doc.add(Table(["problem", "drift", "energy", "cost at matched accuracy"],
                   _headline_rows(current)))
 
@@ -119,22 +145,26 @@ def _history(doc: Document, runs: pd.DataFrame) -> None:
     if runs.empty or runs["commit"].nunique(dropna=False) < 2:
         return
     doc.heading(2, "History across commits")
-    doc.add(Para("The headline computed from the runs of each commit separately (the latest "
-                 "run of each identity within that commit), oldest commit first."))
-    order = runs.groupby("commit", dropna=False)["session_started"].min().sort_values()
-    rows = []
-    for commit, started in order.items():
-        sub = latest(runs[runs["commit"].isna()] if pd.isna(commit)
-                     else runs[runs["commit"] == commit])
-        dirty = " (dirty)" if sub["dirty"].astype(bool).any() else ""
-        date = time.strftime("%Y-%m-%d %H:%M", time.localtime(started))
-        for problem in sorted(sub["problem"].unique()):
-            p = sub[sub["problem"] == problem]
-            rows.append([f"{text(commit)[:10] or 'unknown'}{dirty}", date, problem,
-                         drift_winner(p).text,
-                         energy_winner(p).text, cost_winner(p).text])
-    doc.add(Table(["commit", "first run", "problem", "drift", "energy",
-                   "cost at matched accuracy"], rows))
+    hist = history(runs)
+    doc.add(Para("The drift gate's metrics for every run identity (problem, integrator, "
+                 "setting, horizon) across the commits in the store, oldest first; each "
+                 "commit shows the latest run of each identity it ran (+: the working tree "
+                 "differed from the commit). A regression is a change between consecutive "
+                 "commits that ran the identity that the gate would fail: a metric worse by "
+                 "more than its tolerance, or a finished run that no longer finishes. Runs of "
+                 "chaotic problems are drawn but never regress, as in the gate."))
+    doc.add(Table(["commit", "first run", "runs"],
+                  [[c["label"], time.strftime("%Y-%m-%d %H:%M", time.localtime(c["started"])),
+                    str(c["runs"])] for _, c in hist.commits.iterrows()]))
+    doc.add(Figure("history", figures.history(hist),
+                   "One panel per gated metric, one grey line per run identity; red crosses "
+                   "mark regressions (listed below)."))
+    if hist.regressions:
+        doc.add(Table(["run", "metric", "from", "to", "change"],
+                      [[i, LABELS.get(m, m), c0, c1, ch] for i, m, c0, c1, ch in
+                       hist.regressions], "Regressions between consecutive commits"))
+    else:
+        doc.add(Para("No regression between consecutive commits."))
 
 
 # --------------------------------------------------------------------------- problems
@@ -146,10 +176,13 @@ def _missing(row) -> str:
 
 
 def _cell(row, column: str) -> str:
-    """A metric cell: the number, or :func:`_missing`."""
+    """A metric cell: the number, or :func:`_missing`; a final error (and its scd) at the
+    reference's floor says so instead of giving the reference's error as the run's."""
     value = row.get(column)
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return _missing(row)
+    if column in ("final_state_error", "scd") and at_floor(row):
+        return floor_text(row)
     return fmt(value)
 
 
@@ -165,15 +198,19 @@ def _summary(doc: Document, runs: pd.DataFrame) -> None:
     with_inv = runs["invariant_errors"].fillna("").astype(bool).any() \
         if "invariant_errors" in runs else False
     columns = ["integrator", "setting", "t_end", "status", "steps", "evaluations", "wall [s]",
-               "max |g|", "max |G v + g_t|", "max rel. energy error", "|g| growth",
-               "energy growth", "final error", "scd", "linear solver"]
+               "wall min [s]", "wall max [s]", "solves", "max |g|", "max |G v + g_t|",
+               "max rel. energy error", "|g| growth", "energy growth", "final error", "scd",
+               "linear solver"]
     if with_inv:
         columns.append("invariant errors")
     columns.append("message")
     rows = []
     for _, r in runs.sort_values(["integrator", "h", "rtol"]).iterrows():
+        t = timing(r)
+        spread = [fmt(t.low), fmt(t.high), str(t.repeats)] if not math.isnan(t.median) \
+            else [_missing(r)] * 3
         row = [r["integrator"], setting(r), fmt(r["t_end"]), str(r["status"]),
-               _cell(r, "n_steps"), _cell(r, "n_f_evals"), _cell(r, "wall_s"),
+               _cell(r, "n_steps"), _cell(r, "n_f_evals"), _cell(r, "wall_s"), *spread,
                _cell(r, "max_pos_residual"), _cell(r, "max_vel_residual"),
                _cell(r, "rel_energy_error"), text(r.get("pos_growth")) or _missing(r),
                text(r.get("energy_growth")) or _missing(r),
@@ -183,18 +220,33 @@ def _summary(doc: Document, runs: pd.DataFrame) -> None:
             row.append(_invariants(r) or _missing(r))
         row.append(text(r["message"]))
         rows.append(row)
-    doc.add(Table(columns, rows, "Evaluations are force/residual evaluations; growth classes "
-                                 "fit the windowed maxima against t (exponent p of a power "
-                                 "law); n/a: does not apply (no reference, no conserved "
-                                 "energy)."))
+    doc.add(Table(columns, rows, "Evaluations are force/residual evaluations; wall is the "
+                                 "median of the timed solves, min and max their spread; "
+                                 "growth classes fit the windowed maxima against t (exponent "
+                                 "p of a power law); n/a: does not apply (no reference, no "
+                                 "conserved energy); at reference floor: the final error is "
+                                 "within the reference's own accuracy."))
 
 
-def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) -> None:
-    doc.heading(2, f"Problem: {problem}")
+def _floor_note(runs: pd.DataFrame) -> str:
+    """What the problem's reference is accurate to, where the runs recorded it."""
+    floors = [reference_floor(r) for _, r in runs.iterrows() if r["status"] == "ok"]
+    floor = max(floors, default=0.0)
+    if floor <= 0:
+        return ""
+    n = sum(at_floor(r) for _, r in runs.iterrows())
+    return (f" The reference is itself accurate to {fmt(floor)} (max-norm on its scored "
+            f"components): final errors at or below that ({n} runs) are shown as at the "
+            f"reference floor, fit no order and decide no verdict.")
+
+
+def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
+             levels: tuple[float, ...], wp: tuple[tuple[str, ...], tuple[str, ...]]) -> None:
+    doc.heading(2, f"Problem: {problem}", collapsible=True)
     n_bad = int((runs["status"] != "ok").sum())
     horizons = ", ".join(fmt(x) for x in sorted(runs["t_end"].dropna().unique()))
     doc.add(Para(f"{len(runs)} runs of {runs['integrator'].nunique()} integrators, horizons "
-                 f"t_end = {horizons}; {n_bad} did not finish."))
+                 f"t_end = {horizons}; {n_bad} did not finish." + _floor_note(runs)))
     if is_sensitive(runs):
         doc.add(Para("This problem is declared chaotic (sensitive): nearby solutions separate "
                      "exponentially, so its final errors and scd measure that separation more "
@@ -220,8 +272,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) ->
         entries.append({"label": f"{r['integrator']} {setting(r)}, t_end={fmt(r['t_end'])}"
                                  + (f" ({r['status']})" if failed else ""),
                         "integrator": r["integrator"], "windows": windows, "failed": failed})
-    slug = _slug(problem)
-    doc.add(Figure(f"{slug}-drift", figures.drift(entries, colors, problem),
+    doc.add(Figure(f"{problem}-drift", figures.drift(entries, colors, problem),
                    "Window maxima of |g| and |H - H0| against t (log-log), one run per "
                    "integrator: the longest horizon, a finished run where there is one, the "
                    "coarsest setting. A cross marks where a failed run stopped; zeros are drawn "
@@ -231,33 +282,61 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) ->
     sweep = at_sweep_horizon(runs)
     n_ok = int((sweep["status"] == "ok").sum())
     horizon = fmt(sweep["t_end"].iloc[0]) if not sweep.empty else "none"
-    doc.add(Figure(f"{slug}-work-precision",
-                   figures.work_precision(sweep, colors, f"{problem}, t_end = {horizon}"),
-                   f"Final error, max |g| and max relative energy error against wall time and "
-                   f"against force evaluations at t_end = {horizon} (the horizon of the "
-                   f"sweeps); each line joins the finished runs of one integrator over its "
-                   f"settings ({n_ok} runs; {len(sweep) - n_ok} that did not finish are not "
-                   f"drawn, see the summary)."))
+    x, y = wp
+    floor = max((reference_floor(r) for _, r in sweep.iterrows()), default=0.0)
+    doc.add(Figure(f"{problem}-work-precision",
+                   figures.work_precision(sweep, colors, f"{problem}, t_end = {horizon}", x, y,
+                                          floor),
+                   f"{', '.join(LABELS[c] for c in y)} against {', '.join(LABELS[c] for c in x)} "
+                   f"at t_end = {horizon} (the horizon of the sweeps); each line joins the "
+                   f"finished runs of one integrator over its settings ({n_ok} runs; "
+                   f"{len(sweep) - n_ok} that did not finish are not drawn, see the summary)."
+                   + (f" Dashed: the reference floor {fmt(floor)}." if floor > 0 else "")))
+
+    doc.heading(3, f"{problem}: accuracy targets")
+    rows = target_rows(runs, levels)
+    if rows:
+        doc.add(Table(["metric", "target", "cheapest by wall time [s]", "cheapest by evaluations",
+                       "not reached by"], [_target_row(t) for t in rows],
+                      f"The cheapest finished run at t_end = {horizon} whose metric is at or "
+                      f"below each target (a final error counts as no better than the "
+                      f"reference floor); wall time as median (min-max, solves)."))
+    else:
+        doc.add(Para("No finished run measured an accuracy."))
 
     doc.heading(3, f"{problem}: convergence")
     convs, basis = convergence(runs)
-    doc.add(Figure(f"{slug}-convergence",
+    doc.add(Figure(f"{problem}-convergence",
                    figures.convergence(convs, colors, f"{problem}: convergence", basis),
-                   f"Fixed-step methods only; {basis}. Dashed: slope of the nominal order."))
+                   f"Fixed-step methods only; {basis}. Filled markers: fitted points; hollow: "
+                   f"left out (at the reference floor or round-off). Dashed: slope of the "
+                   f"nominal order."))
     if convs:
         doc.add(Table(["integrator", "fitted order", "nominal order", "points fitted",
-                       "step sizes"], [_order_row(c) for c in convs]))
+                       "step sizes fitted", "step sizes left out"],
+                      [_order_row(c) for c in convs]))
+
+
+def _target_row(t: Target) -> list[str]:
+    label = LABELS[t.column]
+    if t.note:
+        return [label, f"≤ {fmt(t.target)}", t.note, t.note, ""]
+    return [label, f"≤ {fmt(t.target)}", t.by_wall.text, t.by_evals.text,
+            ", ".join(t.missed) or "-"]
 
 
 def _order_row(c: Convergence) -> list[str]:
-    fitted = "n/a (fewer than 2 step sizes above round-off)" if math.isnan(c.order) \
-        else f"{c.order:.2f}"
+    if not math.isnan(c.order):
+        fitted = f"{c.order:.2f}"
+    elif c.floor > 0:
+        fitted = (f"n/a: too few points above the reference floor ({c.n_fit} of "
+                  f"{len(c.h)} step sizes with error above {fmt(c.threshold)})")
+    else:
+        fitted = f"n/a: fewer than 2 step sizes with error above round-off ({fmt(c.threshold)})"
     nominal = "n/a" if math.isnan(c.nominal) else fmt(c.nominal)
-    return [c.integrator, fitted, nominal, str(c.n_fit), ", ".join(fmt(h) for h in c.h)]
-
-
-def _slug(text: str) -> str:
-    return "".join(ch if ch.isalnum() else "-" for ch in text.lower()).strip("-")
+    return [c.integrator, fitted, nominal, str(c.n_fit),
+            ", ".join(fmt(h) for h in c.h[c.fitted]) or "-",
+            ", ".join(fmt(h) for h in c.h[~c.fitted]) or "-"]
 
 
 # --------------------------------------------------------------------------- studies
@@ -289,7 +368,7 @@ def _studies(doc: Document, artifacts: pd.DataFrame) -> None:
                 except SvgError as exc:
                     doc.add(Para(f"Figure {a['name']} cannot be shown: {exc}."))
                     continue
-                doc.add(Figure(f"study-{_slug(section)}-{_slug(a['name'])}", a["content"],
+                doc.add(Figure(f"study-{section}-{a['name']}", a["content"],
                                str(a["name"]), trusted=False))
 
 

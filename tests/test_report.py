@@ -216,3 +216,80 @@ def test_a_version_1_store_still_gives_a_report(tmp_path):
     assert "Problem: pendulum" in text and "<svg" in sections(text)["Problem: pendulum"]
     # The synthetic old run has no evaluation count and no energy error: 'n/a', not blank.
     assert "| rattle | h=0.01 | 10 | ok | 1000 | n/a |" in md.read_text()
+
+
+def test_a_300_character_problem_spec_names_bounded_files(tmp_path):
+    """Figure files are named from problem specs: a long spec gets a bounded, sanitised name
+    with a hash of the full spec, and every later report of that store builds too."""
+    from reports.document import MAX_STEM, file_stem
+
+    spec = "pendulum:L=1." + "0" * 287
+    assert len(spec) == 300
+    db = tmp_path / "driftbench.sqlite"
+    with Store(db) as st:
+        session = st.begin("unit")
+        for h in (0.1, 0.05):
+            st.add(session, run(spec, "rattle", h, final=h ** 2))
+        st.add(session, run(spec[:-1] + "1", "rattle", 0.1, final=1e-2))
+    for _ in range(2):
+        paths = build(db, tmp_path)
+    stems = [p.stem for p in paths[2:]]
+    assert all(len(p.name) <= MAX_STEM + 4 and re.fullmatch(r"[a-z0-9-]+", p.stem)
+               for p in paths[2:])
+    # Two specs that differ only in their last digit get files of their own.
+    assert file_stem(f"{spec}-drift") in stems and file_stem(f"{spec[:-1]}1-drift") in stems
+    assert file_stem(f"{spec}-drift") != file_stem(f"{spec[:-1]}1-drift")
+    assert len(set(stems)) == len(stems)
+
+
+def test_problem_sections_fold_and_the_contents_and_headline_come_first(report):
+    out, _ = report
+    html = (out / "report.html").read_text()
+    body = html[html.index("<main>"):]
+    assert body.index('<nav class="toc">') < body.index('id="headline"') < body.index("<details")
+    assert html.count('<details class="section">') == html.count("</details>") == 2
+    assert re.search(r'<details class="section"><summary><h2 id="problem-pendulum">', html)
+
+
+def test_timing_spread_and_targets_are_printed(report):
+    out, _ = report
+    problem = sections((out / "report.html").read_text())["Problem: pendulum"]
+    assert "<th>wall min [s]</th><th>wall max [s]</th><th>solves</th>" in problem
+    assert "pendulum: accuracy targets" in problem and "cheapest by evaluations" in problem
+
+
+def test_the_reference_floor_replaces_errors_below_it(tmp_path):
+    """A final error within the reference's accuracy is not given as the method's error."""
+    db = tmp_path / "driftbench.sqlite"
+    with Store(db) as st:
+        session = st.begin("unit")
+        for h, final in ((2e-3, 3e-10), (1e-3, 5.5e-12), (5e-4, 4.8e-12)):
+            rec = run("car-axis", "lobatto3ab4", h, final=final, order=6)
+            rec.row["reference_floor"] = 6e-12
+            st.add(session, rec)
+    md = build(db, tmp_path)[0].read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| lobatto3ab4 | h=0.0005 |"))
+    assert "at reference floor (≤ 6e-12)" in row and "4.8e-12" not in md
+    assert "too few points above the reference floor" in md
+
+
+def test_bad_command_line_input_is_one_line_and_exit_2(tmp_path, capsys):
+    from reports.__main__ import main
+
+    for argv in (["--x", "flops"], ["--targets", "-1"], ["--db", str(tmp_path / "none")]):
+        with pytest.raises(SystemExit) as exc:
+            code = main(["--out", str(tmp_path), *argv])
+            raise SystemExit(code)
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+
+
+def test_work_precision_axes_follow_the_command_line(tmp_path):
+    from reports.__main__ import main
+
+    db = tmp_path / "driftbench.sqlite"
+    fill(db)
+    assert main(["--db", str(db), "--out", str(tmp_path), "--x", "steps", "--y", "Gv"]) == 0
+    svg = (tmp_path / "figures" / "pendulum-work-precision.svg").read_text()
+    assert "max |G v + g_t|" in svg and ">steps<" in svg and "wall time" not in svg

@@ -38,7 +38,8 @@ def state(entry: dict) -> tuple[np.ndarray, np.ndarray]:
 def reference(name: str, params: dict) -> Reference | None:
     """The stored computed reference of ``NAME.json`` for ``params`` (None if not stored).
 
-    Scored on every component of ``(q, v)``, at the stored times only.
+    Scored on every component of ``(q, v)``, at the stored times only; its floor is the
+    largest stored error estimate.
     """
     stored = load(name)
     entries = [e for e in stored["entries"] if e["params"] == params]
@@ -54,4 +55,5 @@ def reference(name: str, params: dict) -> Reference | None:
         solution=lambda t: by_time[min(by_time, key=lambda s: abs(s - t))],
         scored=tuple(range(2 * n)),
         times=tuple(sorted(by_time)),
+        floor=worst,
     )
