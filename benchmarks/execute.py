@@ -68,6 +68,7 @@ def known(spec: RunSpec, case, integ, grid_options: dict | None, version: str) -
                 params=json.dumps(case.params, default=str), h=opts.get("h"),
                 rtol=opts.get("rtol"), atol=opts.get("atol"), t0=case.t0,
                 energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
+                family=integ.family,
                 sensitive=int(bool(case.system.sensitive)),
                 run_key=run_key(resolved, version))
 

@@ -44,7 +44,7 @@ COLUMNS = (
     "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
     "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
-    "energy_growth", "reference_floor",
+    "energy_growth", "reference_floor", "family",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -60,7 +60,7 @@ ACCURACY_COLUMNS = (
 #: Columns that hold text; every other column holds a number or nothing.
 TEXT_COLUMNS = ("problem", "integrator", "status", "message", "q_final", "v_final",
                 "invariant_errors", "sampling", "options", "params", "run_key",
-                "linear_solver", "pos_growth", "energy_growth")
+                "linear_solver", "pos_growth", "energy_growth", "family")
 
 #: Columns that hold whole numbers (pandas reads them as floats where some are empty).
 WHOLE_COLUMNS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",

@@ -1,7 +1,7 @@
 """``python -m reports --db results/driftbench.sqlite --out results/``: rebuild the report.
 
 ``--scaling DIR`` adds the section of the scaling benchmark's results in ``DIR``
-(``python -m benchmarks.scaling --out DIR``); ``--targets`` sets the accuracy targets of
+(``python -m benchmarks.perf.scaling --out DIR``); ``--targets`` sets the accuracy targets of
 the per-problem target tables; ``--x`` and ``--y`` choose the work-precision diagrams'
 axes. Bad input is one line on stderr and exit status 2.
 """
@@ -47,7 +47,7 @@ def parser() -> argparse.ArgumentParser:
                    help="output folder (default: results/)")
     p.add_argument("--scaling", type=Path, metavar="DIR",
                    help="add the scaling section from DIR/scaling.json "
-                        "(python -m benchmarks.scaling --out DIR)")
+                        "(python -m benchmarks.perf.scaling --out DIR)")
     p.add_argument("--targets", type=_target, nargs="+", default=list(DEFAULT_TARGETS),
                    metavar="LEVEL",
                    help="accuracy targets of the per-problem target tables (default: "

@@ -31,12 +31,28 @@ MARKERS = "os^Dv<>pP*Xh"
 LEGEND_ROW = 0.2
 
 
-def palette(keys) -> dict[str, tuple]:
-    """A fixed colour and marker per integrator, the same in every figure."""
-    from matplotlib import colormaps
+def palette(families: dict[str, str]) -> dict[str, tuple]:
+    """A fixed colour and marker per integrator, the same in every figure.
 
-    cmap = colormaps["tab20" if len(keys) > 10 else "tab10"]
-    return {k: (cmap(i % cmap.N), MARKERS[i % len(MARKERS)]) for i, k in enumerate(sorted(keys))}
+    ``families`` maps each integrator to its family (the integrator's ``family`` trait):
+    one hue per family, so a reader sees the families at a glance, and within a family
+    one shade (from full to pale) and one marker per integrator.
+    """
+    from matplotlib import colormaps
+    from matplotlib.colors import to_rgb
+
+    hues = colormaps["tab10"]
+    members: dict[str, list[str]] = {}
+    for key in sorted(families):
+        members.setdefault(families[key], []).append(key)
+    colors = {}
+    for i, family in enumerate(sorted(members)):
+        base = np.array(to_rgb(hues(i % hues.N)))
+        keys = members[family]
+        for j, key in enumerate(keys):
+            pale = 0.55 * j / max(len(keys) - 1, 1)
+            colors[key] = (tuple(base + (1.0 - base) * pale), MARKERS[j % len(MARKERS)])
+    return colors
 
 
 def _svg(fig: Figure) -> str:

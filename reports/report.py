@@ -48,7 +48,7 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     db_path, out_dir : path
         The results store, and the folder the report is written to.
     scaling : path, optional
-        The output folder of ``python -m benchmarks.scaling``, whose results get a section
+        The output folder of ``python -m benchmarks.perf.scaling``, whose results get a section
         of their own (:class:`reports.scaling.ScalingError` if it holds none).
     targets : sequence of float
         The accuracy targets of each problem's target table.
@@ -74,10 +74,18 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
         return load_series(db_path, run_id)
 
     current = latest(runs)
-    colors = figures.palette(set(runs["integrator"]) if not runs.empty else set())
+    colors = figures.palette(_families(runs))
 
     doc = Document(TITLE)
     doc.add(Para(_scope(runs, current)))
+    families = _families(runs)
+    if families:
+        members: dict[str, list[str]] = {}
+        for key, family in sorted(families.items()):
+            members.setdefault(family, []).append(key)
+        doc.add(Para("Families (one hue each in the figures, a shade and marker per "
+                     "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
+                                                 for f, k in sorted(members.items())) + "."))
     _headline(doc, current)
     _history(doc, runs)
     seed.section(doc, current, series, colors)
@@ -96,6 +104,16 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     md_path.write_text(md)
     html_path.write_text(to_html(doc, [built]))
     return [md_path, html_path, *written]
+
+
+def _families(runs: pd.DataFrame) -> dict[str, str]:
+    """Integrator -> its family, as the run recorded it (the integrator's ``family``
+    trait); runs stored before families were recorded count as a family of their own."""
+    if runs.empty:
+        return {}
+    family = runs.get("family", pd.Series(index=runs.index, dtype=object))
+    named = family.where(family.notna() & (family.astype(str) != ""), runs["integrator"])
+    return dict(zip(runs["integrator"], named.astype(str)))
 
 
 def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:

@@ -1,6 +1,6 @@
 """The scaling section: cost per step against system size, from the scaling benchmark's output.
 
-``python -m benchmarks.scaling --out DIR`` writes ``DIR/scaling.json``; this module reads
+``python -m benchmarks.perf.scaling --out DIR`` writes ``DIR/scaling.json``; this module reads
 that file only (it imports no integrator or problem) and renders one section: the settings
 and what the times include, the plot of time per step against N (one line per family and
 the C yardstick), the table of points, the fitted exponents and the bars. The benchmark
@@ -32,7 +32,7 @@ def load(folder) -> dict:
     """The results in ``folder/scaling.json``; :class:`ScalingError` if absent or malformed."""
     path = Path(folder) / SCALING_FILE
     if not path.is_file():
-        raise ScalingError(f"{path} does not exist: run python -m benchmarks.scaling "
+        raise ScalingError(f"{path} does not exist: run python -m benchmarks.perf.scaling "
                            f"--out {folder} first")
     try:
         data = json.loads(path.read_text())
@@ -75,7 +75,7 @@ def section(doc: Document, data: dict) -> None:
         f"{data.get('machine', {}).get('cpus', '?')} cores (other processes share them). "
         f"C yardstick: {s.get('c_yardstick', 'not recorded')}."))
     families = list(dict.fromkeys(p["family"] for p in points if p["family"] != C_NAME))
-    colors = figures.palette(set(families))
+    colors = figures.palette({key: key for key in families})
     panels = []
     for problem in s["problems"]:
         lines = []

@@ -293,3 +293,17 @@ def test_work_precision_axes_follow_the_command_line(tmp_path):
     assert main(["--db", str(db), "--out", str(tmp_path), "--x", "steps", "--y", "Gv"]) == 0
     svg = (tmp_path / "figures" / "pendulum-work-precision.svg").read_text()
     assert "max |G v + g_t|" in svg and ">steps<" in svg and "wall time" not in svg
+
+
+def test_figure_colours_follow_the_integrators_families():
+    """One hue per family (the integrators' ``family`` trait), shades and markers within."""
+    from matplotlib.colors import rgb_to_hsv
+
+    from reports.figures import palette
+
+    colors = palette({"lobatto3ab2": "SPARK", "lobatto3ab3": "SPARK", "rattle": "RATTLE"})
+    hue = {k: rgb_to_hsv(c)[0] for k, (c, _) in colors.items()}
+    assert hue["lobatto3ab2"] == pytest.approx(hue["lobatto3ab3"], abs=1e-9)
+    assert abs(hue["rattle"] - hue["lobatto3ab2"]) > 0.05
+    assert colors["lobatto3ab2"][0] != colors["lobatto3ab3"][0]
+    assert colors["lobatto3ab2"][1] != colors["lobatto3ab3"][1]
