@@ -22,8 +22,6 @@ from reports.analysis import LABELS, Convergence, History, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
 LOG_FLOOR = 1e-17
-#: Top of the per-step violation axis: a blown-up run would squeeze every other line.
-VIOLATION_TOP = 10.0
 RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "none", "font.size": 8,
       "axes.grid": True, "grid.alpha": 0.3, "legend.fontsize": 7, "axes.titlesize": 9}
 MARKERS = "os^Dv<>pP*Xh"
@@ -278,69 +276,6 @@ def history(hist: History) -> str:
             ax.set_visible(False)
         _arrange(fig, rows, cols)
         fig.subplots_adjust(hspace=0.7)
-        return _svg(fig)
-
-
-def ring_snapshots(snapshots: list[tuple[float, float, float]], title: str) -> str:
-    """The receiver's twelve points at several times, in the co-rotating plane.
-
-    ``snapshots``: ``(t, R, r)``. Outer points at radius ``R`` and angles ``k * 60 deg``
-    (``*``), inner points at radius ``r`` and ``30 + k * 60 deg`` (``+``), joined by the
-    bars in the zig-zag order outer k, inner k, outer k+1.
-    """
-    n = max(1, len(snapshots))
-    cols = min(3, n)
-    rows = math.ceil(n / cols)
-    with rc_context(RC):
-        fig, axes = _figure(rows, cols, 3.0 * cols, 3.0 * rows)
-        lim = 1.15 * max([max(R, r) for _, R, r in snapshots] or [1.0])
-        for ax, (t, R, r) in zip(axes.flat, snapshots):
-            outer = np.deg2rad(60.0 * np.arange(6))
-            inner = outer + np.deg2rad(30.0)
-            xo, yo = R * np.cos(outer), R * np.sin(outer)
-            xi, yi = r * np.cos(inner), r * np.sin(inner)
-            zx = np.ravel(np.column_stack([xo, xi]))
-            zy = np.ravel(np.column_stack([yo, yi]))
-            ax.plot(np.append(zx, zx[0]), np.append(zy, zy[0]), color="0.6", lw=0.8)
-            ax.plot(xo, yo, "*", color="tab:red", ms=8, label=f"outer, R = {R:.4f}")
-            ax.plot(xi, yi, "+", color="tab:blue", ms=8, mew=1.5, label=f"inner, r = {r:.4f}")
-            ax.set_xlim(-lim, lim)
-            ax.set_ylim(-lim, lim)
-            ax.set_aspect("equal")
-            ax.set_title(f"t = {t:g}")
-            ax.legend(loc="lower right", fontsize=6)
-        for ax in list(axes.flat)[len(snapshots):]:
-            ax.set_visible(False)
-        _arrange(fig, rows, cols)
-        fig.suptitle(title)
-        return _svg(fig)
-
-
-def step_violation(entries: list[dict], colors: dict, title: str, claim: float) -> str:
-    """``|g|`` at each step (window maxima) against ``t`` on a log axis, with the claimed
-    bound drawn as a horizontal line."""
-    with rc_context(RC), np.errstate(over="ignore"):
-        fig, axes = _figure(1, 1, 9.0, 4.0)
-        ax = axes[0, 0]
-        for e in entries:
-            w = e["windows"]
-            if "t" not in w or len(w["t"]) == 0:
-                continue
-            color, marker = colors[e["integrator"]]
-            ax.semilogy(w["t"], _floor(w["pos"]), marker=marker if len(w["t"]) <= 200 else None,
-                        ms=3, lw=0.9, color=color, ls="-" if not e.get("failed") else ":",
-                        label=e["label"])
-            if e.get("failed"):
-                ax.plot(w["t"][-1], _floor(w["pos"])[-1], "x", ms=9, mew=2, color=color)
-        ax.axhline(claim, color="k", ls="--", lw=0.8, label=f"seed's bound {claim:g}")
-        drawn = [_floor(e["windows"]["pos"]) for e in entries if len(e["windows"].get("t", []))]
-        values = np.concatenate(drawn + [np.array([claim])])
-        values = values[np.isfinite(values)]
-        ax.set_ylim(values.min() / 3.0, min(values.max(), VIOLATION_TOP) * 3.0)
-        ax.set_xlabel("t")
-        ax.set_ylabel("|g(q_n)|")
-        _arrange(fig, 1, 1, ax.get_legend_handles_labels(), side=2.6)
-        fig.suptitle(title)
         return _svg(fig)
 
 

@@ -2,9 +2,10 @@
 
 Sections, in order: the headline (which method wins each problem for drift, for energy and
 for cost at matched accuracy), the history of the drift gate's metrics across commits
-(when the store holds several), the seed reproduction, one collapsible section per problem
-(summary table, drift series, work-precision diagrams, accuracy targets, convergence
-orders), the study sections (tables and figures stored by study suites), the scaling
+(when the store holds several), one collapsible section per problem (summary table, drift
+series, work-precision diagrams, accuracy targets, convergence orders), the study sections
+(tables and figures stored by the studies a suite names, the seed reproduction among them:
+:mod:`studies`), the scaling
 section when a scaling benchmark's output folder is given (:mod:`reports.scaling`) and the
 provenance of the runs shown.
 
@@ -23,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
-from reports import figures, scaling as scaling_section, seed
+from reports import figures, scaling as scaling_section
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
                               PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
                               convergence, cost_winner, drift_winner, energy_winner,
@@ -88,7 +89,6 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
                                                  for f, k in sorted(members.items())) + "."))
     _headline(doc, current)
     _history(doc, runs)
-    seed.section(doc, current, series, colors)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
                  tuple(targets), wp)

@@ -13,9 +13,13 @@ in :data:`STUDIES` (``study = "flexible-modal"``).
 ``flexible_modal``
     The study that runs them: the seed's Tables 1 and 2 analogues, and the reduced model
     stored for the ``flexible-spacecraft`` problem (``--regenerate``).
+``seed_sps``
+    The first seed's reduced SPS receiver: its setting and a step-size sweep, the analogues
+    of its Figs. 3 and 4, and the verdict on its claim.
 """
 
 #: Registered studies: name -> ``"module:function"`` with ``function(out) -> dict``.
 STUDIES: dict[str, str] = {
     "flexible-modal": "studies.flexible_modal:run",
+    "seed-sps": "studies.seed_sps:run",
 }
