@@ -39,7 +39,11 @@ def explain(exc: BaseException) -> str:
     if isinstance(exc, TRACER_ERRORS):
         detail = f"{type(exc).__name__}: {TRACER_ADVICE}"
     else:
-        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
+        # The exception itself, without its notes: JAX adds one to every error it raises
+        # (that it removed its internal frames), which would stand in for the message.
+        shown = traceback.TracebackException.from_exception(exc)
+        shown.__notes__ = None
+        detail = list(shown.format_exception_only())[-1]
     return one_line(f"{where}: {detail}" if where else detail)
 
 

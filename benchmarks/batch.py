@@ -23,21 +23,38 @@
   it;
 - **validation first**: every case and integrator is built and checked before any run
   starts; bad input raises :class:`~benchmarks.records.InputError` with one line that names
-  what is wrong and where, and nothing is written.
+  what is wrong and where, and nothing is written. Sizes are checked before a case is
+  built (:func:`problems.check_size`) and step counts before a run is planned
+  (:data:`STEP_LIMIT`), unless ``allow_large``; the estimated size of a long run is
+  printed;
+- **duplicates run once**: specs that resolve to the same run (same ``run_key``: problem,
+  parameters, method, options and horizon, however they were written) run once; every one
+  of them gets its record, and ``runs.csv`` lists the run once;
+- **one writer per folder**: a batch holds the lock of its output folder
+  (:class:`~benchmarks.files.FolderLock`) from before it opens the store until it ends; a
+  second invocation on the same folder is refused with one line before it runs anything.
 
-``runs.csv`` gets a row per run as it ends (in the order runs end, so a killed batch leaves
-the runs it finished) and is rewritten at the end in the order of the specs. Of a resumed
-batch it holds every run of the batch: the runs skipped because they were finished, read
-back from the store as stored (their latest finished row), and the runs of this batch.
+``runs.csv`` is replaced whole (:func:`benchmarks.files.replace_file`), never truncated:
+rows are appended to ``runs.partial.csv`` as runs end (so a batch killed outright leaves
+the runs it finished there, as well as in the store), and ``runs.csv`` is written in the
+order of the specs when the batch ends, also when it is interrupted. Of a resumed batch it
+holds every run of the batch: the runs skipped because they were finished, read back from
+the store as stored (their latest finished row), and the runs of this batch.
+
+A store that fails while the batch runs (a full disk, a file damaged meanwhile) costs no
+run: the record goes to ``runs.csv`` all the same, the store is not written to again, and
+the batch raises :class:`OutputError` (one line) once every run has ended and ``runs.csv``
+is written.
 """
 
 from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import itertools
 import math
-import os
+import sqlite3
 import sys
 from pathlib import Path
 from typing import Iterable, TextIO
@@ -53,6 +70,7 @@ from benchmarks.cluster import Cluster
 from benchmarks.audit import AuditError, audit, explain
 from benchmarks.execute import build, known
 from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
+from benchmarks.files import FolderInUse, FolderLock, replace_file
 from benchmarks.pool import Pool, usable_cpus
 from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunSpec,
                                 blank_row, identity, one_line, provenance)
@@ -63,6 +81,25 @@ from studies import STUDIES
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
 DEFAULT_TIMEOUT = 3600.0
+#: Most steps of a fixed-step run planned without ``allow_large``: a thousand times the
+#: longest run of the shipped suites; ``--h 1e-9 --t-end 1`` (10^9 steps) would otherwise
+#: run silently for up to an hour.
+STEP_LIMIT = 10**8
+#: Runs of at least this many steps, or of steps times coordinates, get their estimated
+#: size printed before the batch starts.
+LONG_STEPS, LONG_WORK = 10**6, 10**8
+
+
+class OutputError(InputError):
+    """Results that could not all be written (a store or ``runs.csv`` that failed while the
+    batch ran): one line saying what failed and where every run's record is.
+
+    ``records`` holds the records of the batch (as :func:`run_specs` returns them).
+    """
+
+    def __init__(self, message: str, records=()):
+        super().__init__(message)
+        self.records = list(records)
 
 
 
@@ -101,14 +138,25 @@ def check_timeout(value, where: str) -> None:
                          f"seconds (inf for no limit)")
 
 
-def validate(specs: Iterable[RunSpec], version: str,
-             grid_options: dict | None = None) -> list[dict]:
+def _steps(fixed: dict) -> float | None:
+    """The number of steps of a fixed-step run from its known columns, else None."""
+    h = fixed.get("h")
+    if h is None or fixed.get("t_end") is None:
+        return None
+    return (fixed["t_end"] - (fixed.get("t0") or 0.0)) / h
+
+
+def validate(specs: Iterable[RunSpec], version: str, grid_options: dict | None = None,
+             allow_large: bool = False, notes: list[str] | None = None) -> list[dict]:
     """Build and check every run before any starts; return each run's known columns.
 
-    Each case is built once per problem spec and ``t_end`` (building checks the initial
-    values: inconsistent ones raise with their residuals) and each integrator once per
-    spec and setting. The returned dicts are :func:`benchmarks.execute.known`: the columns
-    fixed before the run, and its ``run_key``.
+    Each problem spec's size is checked before its case is built
+    (:func:`problems.check_size`); each case is built once per problem spec and ``t_end``
+    (building checks the initial values: inconsistent ones raise with their residuals) and
+    each integrator once per spec and setting; a fixed-step run of more than
+    :data:`STEP_LIMIT` steps is refused. ``allow_large`` lifts both limits. The returned
+    dicts are :func:`benchmarks.execute.known`: the columns fixed before the run, and its
+    ``run_key``. The estimated sizes of long runs are appended to ``notes``.
 
     Raises
     ------
@@ -125,6 +173,8 @@ def validate(specs: Iterable[RunSpec], version: str,
             if spec.timeout is not None:
                 check_timeout(spec.timeout, spec.label())
             if spec not in built:
+                if not allow_large:
+                    problems.check_size(spec.problem)
                 built[spec] = build(spec)
             name = problems.split_spec(spec.problem)[0]
             # The library's own problems are verified by its tests; user code is checked
@@ -132,7 +182,18 @@ def validate(specs: Iterable[RunSpec], version: str,
             if spec.problem not in audited and problems.origin(name) != "built-in":
                 audit(built[spec][0])
                 audited.add(spec.problem)
-            out.append(known(spec, *built[spec], grid_options, version))
+            fixed = known(spec, *built[spec], grid_options, version)
+            steps = _steps(fixed)
+            if steps is not None:
+                n = int(built[spec][0].q0.size)
+                size = f"about {steps:.3g} steps of {n} coordinates"
+                if steps > STEP_LIMIT and not allow_large:
+                    raise InputError(f"{spec.label()}: {size} is above the limit of "
+                                     f"{STEP_LIMIT:.0e} steps; give a larger h, a shorter "
+                                     f"t_end, or {problems.ALLOW_LARGE} to run it anyway")
+                if notes is not None and (steps >= LONG_STEPS or steps * n >= LONG_WORK):
+                    notes.append(f"note: {spec.label()}: a long run, {size}")
+            out.append(fixed)
         except (InputError, AuditError, problems.SpecError) as exc:
             raise InputError(one_line(f"{where}{exc}")) from None
         except Exception as exc:  # user code or a defect met while building: one line
@@ -291,7 +352,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
               timeout: float | None = None, resume: bool = False,
               studies: Iterable[str] = (), grid_options: dict | None = None,
               load: Iterable[str] = (), cases=(), log: TextIO | None = sys.stderr,
-              progress: bool | None = None) -> list[Record]:
+              progress: bool | None = None, allow_large: bool = False) -> list[Record]:
     """Run ``specs`` on an engine, store every run and write ``out/runs.csv``.
 
     Parameters
@@ -332,6 +393,9 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         (the Dask dashboard's address) go.
     progress : bool, optional
         Force the progress bar on or off (default: on when ``log`` is a terminal).
+    allow_large : bool
+        Lift the size limit of problems (:func:`problems.check_size`) and the step limit
+        :data:`STEP_LIMIT`.
 
     Returns
     -------
@@ -341,7 +405,11 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     Raises
     ------
     InputError
-        Bad input, found before any run starts (nothing is written then).
+        Bad input, found before any run starts (nothing is written then), a damaged or
+        foreign store, or an output folder that another invocation is writing.
+    OutputError
+        A store or ``runs.csv`` that failed while the batch ran, raised once every run has
+        ended (its ``records`` are what this function returns otherwise).
     """
     load_plugins()
     loaded, blobs = user_code(load, cases)
@@ -358,31 +426,54 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         executor.start()
         version = provenance()["code_version"]
         keyed = version + _digest(loaded, blobs)
-        fixed = validate(specs, keyed, grid_options)
+        notes: list[str] = []
+        fixed = validate(specs, keyed, grid_options, allow_large, notes)
         said = executor.ready()
-        if said and log is not None:
-            print(said, file=log, flush=True)
+        for line in [*notes, *([said] if said else [])]:
+            if log is not None:
+                print(line, file=log, flush=True)
         out = Path(out)
+        lock = FolderLock(out)
         try:
             out.mkdir(parents=True, exist_ok=True)
-            store = Store(out / STORE_NAME)
-        except (OSError, StoreError) as exc:
+            lock.acquire()
+        except FolderInUse as exc:
+            raise InputError(one_line(exc)) from None
+        except OSError as exc:
             raise InputError(one_line(f"cannot write results to {out}: {exc}")) from None
-        with store:
-            return _run_batch(executor, store, specs, fixed, (keyed, loaded, blobs), out,
-                              suite=suite, repeats=repeats, timeout=timeout, resume=resume,
-                              targets=targets, grid_options=grid_options, log=log,
-                              progress=progress)
+        try:
+            try:
+                store = Store(out / STORE_NAME)
+            except StoreError as exc:
+                raise InputError(one_line(exc)) from None
+            except OSError as exc:
+                raise InputError(one_line(f"cannot write results to {out}: {exc}")) from None
+            with store:
+                return _run_batch(executor, store, specs, fixed, (keyed, loaded, blobs), out,
+                                  suite=suite, repeats=repeats, timeout=timeout,
+                                  resume=resume, targets=targets, grid_options=grid_options,
+                                  log=log, progress=progress)
+        finally:
+            lock.release()
+
+
+def _firsts(fixed: list[dict]) -> list[int]:
+    """For each run, the index of the first run with its ``run_key`` (itself if none)."""
+    first: dict[str, int] = {}
+    return [first.setdefault(f["run_key"], i) for i, f in enumerate(fixed)]
 
 
 def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, suite,
                repeats, timeout, resume, targets, grid_options, log, progress) -> list[Record]:
-    """The body of :func:`run_specs` once the input is valid and the store is open;
-    ``code`` is the run keys' version, the loaded sources and the pickled cases."""
+    """The body of :func:`run_specs` once the input is valid, the folder locked and the
+    store open; ``code`` is the run keys' version, the loaded sources and the pickled
+    cases."""
     keyed, loaded, blobs = code
     records: list[Record | None] = [None] * len(specs)
+    firsts = _firsts(fixed)
+    unique = [i for i, first in enumerate(firsts) if first == i]
     finished = store.finished_keys() if resume else set()
-    skipped = [i for i, f in enumerate(fixed) if f["run_key"] in finished]
+    skipped = [i for i in unique if fixed[i]["run_key"] in finished]
     if skipped:
         stored = _stored_rows(store.path, {fixed[i]["run_key"] for i in skipped})
         for i in skipped:
@@ -390,45 +481,97 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
     # A run's affinity is its problem and method: a sweep over h or rtol stays on one
     # worker, which compiles the method once for it.
     tasks = []
-    for i, spec in enumerate(specs):
+    for i in unique:
         if records[i] is None:
+            spec = specs[i]
             limit = _limit(spec.timeout or timeout)
             payload = (spec, keyed, repeats, limit, grid_options, loaded, blobs)
             # Labelled by the identity the store will hold (settings and horizon resolved).
             tasks.append(Task(i, "run", payload, limit, identity(blank_row(spec, **fixed[i])),
                               (spec.problem, spec.integrator)))
-    session = store.begin(suite, timing_note=executor.note(repeats))
+    try:
+        session = store.begin(suite, timing_note=executor.note(repeats))
+    except sqlite3.Error as exc:  # before any run: nothing is lost
+        raise InputError(one_line(f"{store.path}: cannot be written: {exc}")) from None
     bar = Progress(len(tasks) + len(targets), log, progress)
+    if len(unique) < len(specs):
+        bar.note(f"{len(specs) - len(unique)} of {len(specs)} runs repeat an earlier one "
+                 f"(same problem, parameters, method, options and horizon) and run once")
     if skipped:
         bar.note(f"resuming: {len(skipped)} of {len(specs)} runs are finished in "
                  f"{store.path} and are not run again")
-    csv_path = out / "runs.csv"
-    try:
-        with open(csv_path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
-            writer.writeheader()
+    csv_path, partial = out / "runs.csv", out / "runs.partial.csv"
+    failures: list[str] = []
 
-            def report(task: Task, outcome: Outcome) -> None:
-                record = _outcome_record(specs[task.id], fixed[task.id], task, outcome)
+    def fail(what: str) -> None:
+        failures.append(what)
+        bar.note(f"error: {what}")
+
+    def failed(path: Path) -> bool:
+        """Whether writing ``path`` failed already (it is not tried again)."""
+        return any(f.startswith(f"{path}:") for f in failures)
+
+    # Opened at the first row, so that no empty file is left by a batch killed before it.
+    stream: dict = {}
+
+    def append(row: dict) -> None:
+        if not stream:
+            stream["fh"] = open(partial, "w", newline="")
+            stream["csv"] = csv.DictWriter(stream["fh"], fieldnames=COLUMNS,
+                                           extrasaction="ignore")
+            stream["csv"].writeheader()
+        stream["csv"].writerow(row)
+        stream["fh"].flush()
+
+    def report(task: Task, outcome: Outcome) -> None:
+        record = _outcome_record(specs[task.id], fixed[task.id], task, outcome)
+        records[task.id] = record
+        if not failed(partial):
+            try:
+                append(record.row)
+            except OSError as exc:
+                fail(f"{partial}: {exc.strerror or exc}; the rows go to {csv_path} at the end")
+        if not failed(store.path):
+            try:
                 store.add(session, record)
-                writer.writerow(record.row)
-                fh.flush()
-                records[task.id] = record
-                bar.finish(task.id, f"{task.label}: {_summary(record.row)}")
+            except (sqlite3.Error, OSError) as exc:
+                fail(f"{store.path}: storing {task.label} failed ({exc}); it and every later "
+                     f"run are in {csv_path} only")
+        bar.finish(task.id, f"{task.label}: {_summary(record.row)}")
 
-            executor.run(tasks, report, on_start=lambda t: bar.start(t.id, t.label))
-            if targets:
-                _run_studies(executor, store, session, targets, out, _limit(timeout), bar)
+    try:
+        executor.run(tasks, report, on_start=lambda t: bar.start(t.id, t.label))
+        if targets:
+            _run_studies(executor, store, session, targets, out, _limit(timeout), bar, fail)
     finally:
         bar.close()
-    _write_csv(csv_path, [r.row for r in records if r is not None])
+        if stream:
+            try:
+                stream["fh"].close()
+            except OSError:  # its last buffered row: runs.csv below gets every row
+                pass
+        # Also when interrupted: runs.csv then lists the skipped runs and those that ended.
+        rows = [records[i].row for i in unique if records[i] is not None]
+        try:
+            _write_csv(csv_path, rows)
+            partial.unlink(missing_ok=True)
+        except OSError as exc:
+            fail(f"{csv_path}: {exc.strerror or exc}; it was left as it was, the rows of "
+                 f"the runs that ended are in {store.path} and {partial}")
+            if partial.exists() and partial.stat().st_size == 0:
+                partial.unlink()
+    records = [records[first] for first in firsts]
+    if failures:
+        raise OutputError(one_line(f"not every result was written: {failures[0]}"
+                                   + (f" (and {len(failures) - 1} more failures, above)"
+                                      if len(failures) > 1 else "")), records)
     return records
 
 
 def _run_studies(executor: Executor, store: Store, session: int, targets: dict[str, str],
-                 out: Path, timeout: float | None, bar: Progress) -> None:
+                 out: Path, timeout: float | None, bar: Progress, fail) -> None:
     """Run each study on the engine; write its files, store its tables and figures, or
-    its error."""
+    its error; a store that refuses even the error is told to ``fail``."""
     tasks = [Task(-1 - k, "study", (name, target), timeout, f"study {name}")
              for k, (name, target) in enumerate(targets.items())]
 
@@ -454,7 +597,11 @@ def _run_studies(executor: Executor, store: Store, session: int, targets: dict[s
             except Exception as exc:  # a study's output the store refuses is its error
                 error = f"storing its output failed: {type(exc).__name__}: {exc}"
         if error is not None:
-            store.add_table(session, name, "error", pd.DataFrame({"message": [error]}))
+            try:
+                store.add_table(session, name, "error", pd.DataFrame({"message": [error]}))
+            except (sqlite3.Error, OSError) as exc:
+                fail(f"{store.path}: storing the error of study {name} failed ({exc}); "
+                     f"its error: {error}")
         status = "ok" if error is None else f"error: {error}"
         bar.finish(task.id, f"{task.label}: {status}")
 
@@ -462,10 +609,10 @@ def _run_studies(executor: Executor, store: Store, session: int, targets: dict[s
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    """Write ``rows`` to ``path`` atomically (a killed writer leaves the old file)."""
-    tmp = path.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    """Replace ``path`` with ``rows`` whole (:func:`benchmarks.files.replace_file`: a
+    writer that fails or is killed leaves the old file as it was)."""
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    replace_file(path, text.getvalue())

@@ -15,14 +15,22 @@ or below the floor are round-off, which may differ between machines). The drift 
 of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`) regress when
 they grow faster than before (bounded, linear, quadratic, superquadratic, exponential). A
 run that finished in the baseline and now does not (``failed``, ``error``, ``timeout``)
-is a regression, as is a failed run that now fails earlier.
+is a regression, as is a failed run that now fails earlier. A baseline run missing from
+the results is a regression too (the gate must not pass by comparing less); a run new in
+the suite is reported, not gated (``--update`` records the suite as it is).
 
 Runs of sensitive (chaotic) problems, ``System.sensitive``, are compared and reported but
-never fail the gate: their final states depend on round-off. Runs missing from either side
-are reported, not gated (``--update`` records the suite as it is).
+never fail the gate: their final states depend on round-off.
+
+The baseline is checked before anything runs: it must be a baseline of the suite asked
+for, hold at least one run, and every run must have a ``status`` and ``metrics`` whose
+values are numbers or null, none NaN (``+inf`` only for ``scd``, an exact final state). A
+gate that compared nothing, or compared against NaN (every comparison with NaN is false),
+would pass whatever the code does. The last line of output says how many runs were
+compared.
 
 Exit status: 0 when nothing gating regressed (or after ``--update``), 1 on a regression,
-2 on bad input (unknown suite, unreadable baseline).
+2 on bad input (unknown suite, unreadable, empty, malformed or another suite's baseline).
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ from benchmarks import suites
 from benchmarks.batch import run_specs
 from benchmarks.drift import SEVERITY, kind_of
 from benchmarks.executors import load_plugins
+from benchmarks.files import replace_file
 from benchmarks.records import InputError, identity, one_line, provenance
 
 EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
@@ -212,8 +221,8 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
                 findings.append(Finding(kind, rid, series, b, c, change, gating))
     for rid in baseline:
         if rid not in current:
-            findings.append(Finding("note", rid, "run", baseline[rid]["status"], "-",
-                                    "in the baseline, not run", False))
+            findings.append(Finding("regression", rid, "run", baseline[rid]["status"], "-",
+                                    "in the baseline, not run", True))
     return findings
 
 
@@ -245,7 +254,44 @@ def table(findings: list[Finding]) -> str:
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
 
 
-def read_baseline(path: Path) -> dict:
+def _bad_metric(metric: str, value) -> bool:
+    """Whether a baseline metric value cannot be compared with (see the module notes)."""
+    if value is None:
+        return False
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+        return True
+    return math.isinf(value) and not (value > 0 and metric in TOLERANCES
+                                      and TOLERANCES[metric].direction == "higher")
+
+
+def check_entries(runs: dict, where: str) -> None:
+    """Refuse baseline entries the gate cannot compare with, naming the first bad one.
+
+    Raises
+    ------
+    InputError
+        An entry that is not an object, lacks ``status`` or ``metrics``, or has a metric
+        that is not a number or null, or is NaN or infinite (but ``scd = +inf``).
+    """
+    for rid, entry in runs.items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("status"), str) \
+                or not isinstance(entry.get("metrics"), dict):
+            raise InputError(f"{where}: run {rid!r} needs a status and metrics; "
+                             f"recreate the baseline with --update")
+        for metric, value in entry["metrics"].items():
+            if _bad_metric(metric, value):
+                raise InputError(f"{where}: run {rid!r}: metric {metric} = {value!r} cannot "
+                                 f"be compared with; recreate the baseline with --update")
+
+
+def read_baseline(path: Path, suite: str | None = None) -> dict:
+    """The baseline in ``path``, checked; ``suite`` is the name it must have been made for.
+
+    Raises
+    ------
+    InputError
+        A missing, unreadable, malformed or empty baseline, or one of another suite.
+    """
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
@@ -255,6 +301,13 @@ def read_baseline(path: Path) -> dict:
     if not isinstance(data, dict) or data.get("format") != BASELINE_FORMAT \
             or not isinstance(data.get("runs"), dict):
         raise InputError(f"baseline {path} is not a format-{BASELINE_FORMAT} drift baseline")
+    if suite is not None and data.get("suite") != suite:
+        raise InputError(f"baseline {path} was made for suite {data.get('suite')!r}, not "
+                         f"{suite!r}; name its suite with --suite or make one with --update")
+    if not data["runs"]:
+        raise InputError(f"baseline {path} holds no runs, so the gate would compare nothing; "
+                         f"make it with --update")
+    check_entries(data["runs"], f"baseline {path}")
     return data
 
 
@@ -271,7 +324,7 @@ def write_baseline(path: Path, suite: str, current: dict) -> None:
         "runs": dict(sorted(current.items())),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1, sort_keys=False) + "\n")
+    replace_file(path, json.dumps(data, indent=1, sort_keys=False) + "\n")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -293,7 +346,7 @@ def main(argv=None) -> int:
     try:
         load_plugins()
         suite = suites.load(args.suite)
-        baseline = None if args.update else read_baseline(args.baseline)
+        baseline = None if args.update else read_baseline(args.baseline, suite.name)
         with tempfile.TemporaryDirectory(prefix="driftbench-check-") as tmp:
             out = args.out or Path(tmp)
             records = run_specs(suite.runs, out, args.jobs, suite=f"check:{suite.name}",
@@ -316,10 +369,13 @@ def main(argv=None) -> int:
     findings = compare(baseline["runs"], current)
     gating = [f for f in findings if f.kind == "regression" and f.gating]
     improvements = [f for f in findings if f.kind == "improvement"]
+    compared = len(baseline["runs"].keys() & current.keys())
+    missing = len(baseline["runs"].keys() - current.keys())
     if findings:
         print(table(findings))
-    print(f"drift gate {'FAILED' if gating else 'passed'}: {len(current)} runs of suite "
-          f"{suite.name!r} against {args.baseline}; {len(gating)} gating regressions, "
+    print(f"drift gate {'FAILED' if gating else 'passed'}: compared {compared} runs of suite "
+          f"{suite.name!r} with {args.baseline} ({missing} of its runs missing, "
+          f"{len(current) - compared} new); {len(gating)} gating regressions, "
           f"{len(improvements)} improvements")
     return EXIT_REGRESSION if gating else EXIT_OK
 

@@ -274,8 +274,11 @@ class Pool:
                    f"serve({theirs.fileno()}, {os.getpid()}, "
                    f"{-1 if slot.cpu is None else slot.cpu})")
         try:
+            # A session of its own: a Ctrl-C in the terminal reaches the parent alone, which
+            # stops the workers; a worker that died of it would read as a crashed run.
             slot.proc = subprocess.Popen([sys.executable, "-c", command], env=env,
-                                         pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
+                                         pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
+                                         start_new_session=True)
         finally:
             theirs.close()
         slot.conn, slot.ready = Connection(ours.detach()), False

@@ -24,10 +24,14 @@ Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten i
 order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as
 stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
 all under ``--out``. Bad input (unknown names, malformed suite files, out-of-range
-options, inconsistent initial values, an unreachable cluster) is reported on one line
-before any run starts, with exit status 2. Runs that fail are data: they are recorded with
-their status and the command still exits 0. An interrupted invocation (Ctrl-C,
-``SIGTERM``) stops its workers, keeps every finished run and exits with status 130.
+options, inconsistent initial values, an unreachable cluster, a problem above its size
+limit or a run above the step limit without ``--allow-large``, a damaged or foreign store,
+an output folder another invocation is writing) is reported on one line before any run
+starts, with exit status 2. Runs that fail are data: they are recorded with their status
+and the command still exits 0. Results that cannot all be written (a full disk, a store
+damaged meanwhile) give one line and exit status 2 once every run has ended; every run's
+row is in ``runs.csv`` all the same. An interrupted invocation (Ctrl-C, ``SIGTERM``), also
+while it validates, stops its workers, keeps every finished run and exits with status 130.
 """
 
 from __future__ import annotations
@@ -77,6 +81,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="skip runs the store already holds as finished (same run key)")
     p.add_argument("--no-report", action="store_true", help="do not build the report")
+    p.add_argument("--allow-large", action="store_true",
+                   help="lift the size limit of problems and the step limit of runs (both "
+                        "checked before anything is built)")
     p.add_argument("--load", action="append", default=[], metavar="PATH_OR_MODULE",
                    help="import a Python file or module that registers problems or "
                         "integrators, before anything else (repeatable; trusted code)")
@@ -167,8 +174,15 @@ class Interrupted(BaseException):
     """
 
 
+#: Signals received by this invocation: a Ctrl-C in a terminal reaches the worker
+#: processes too, and a worker that dies of it while the runs are validated can surface as
+#: an error before the parent's own signal does; the exit status is still 130.
+_received: list[str] = []
+
+
 def _interrupt(signum, frame):
-    raise Interrupted(signal.Signals(signum).name)
+    _received.append(signal.Signals(signum).name)
+    raise Interrupted(_received[-1])
 
 
 def main(argv=None) -> int:
@@ -183,16 +197,18 @@ def main(argv=None) -> int:
             return EXIT_INPUT
         print(listing())
         return 0
+    _received.clear()
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         load_plugins()
         runs, options = plan(args)
-        records = run_specs(runs, args.out, args.jobs, resume=args.resume, **options)
-    except InputError as exc:
-        print(f"error: {one_line(exc)}", file=sys.stderr)
-        return EXIT_INPUT
-    except Interrupted as exc:
-        print(f"interrupted ({exc}): the runs that finished are in {args.out}; "
+        records = run_specs(runs, args.out, args.jobs, resume=args.resume,
+                            allow_large=args.allow_large, **options)
+    except (InputError, Interrupted) as exc:
+        if not _received:
+            print(f"error: {one_line(exc)}", file=sys.stderr)
+            return EXIT_INPUT
+        print(f"interrupted ({_received[0]}): the runs that finished are in {args.out}; "
               f"run again with --resume to finish the rest", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
@@ -204,8 +220,13 @@ def main(argv=None) -> int:
     summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
     if not args.no_report:
-        for path in build_report(args.out / "driftbench.sqlite", args.out):
-            print(f"wrote {path}")
+        try:
+            for path in build_report(args.out / "driftbench.sqlite", args.out):
+                print(f"wrote {path}")
+        except OSError as exc:  # a full disk: the runs are written, the report is not
+            print(f"error: the report under {args.out} could not be written: "
+                  f"{one_line(exc)}", file=sys.stderr)
+            return EXIT_INPUT
     return 0
 
 

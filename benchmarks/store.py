@@ -19,15 +19,33 @@ crashes or the process is killed. Columns that ``runs.csv`` gains later are adde
 existing file when a writer opens it; older schema versions are migrated (in place by a
 writer, in memory by a reader, which never modifies the file).
 
+Identity and integrity: the file carries SQLite's ``application_id``
+(:data:`APPLICATION_ID`) and the schema version in ``user_version``. Every open, by a
+writer or a reader, first checks (without writing) that the file is an SQLite database, that
+it is ours and that ``PRAGMA quick_check`` passes; a damaged, truncated or foreign file is
+refused with one line (:class:`DamagedStore`, :class:`ForeignFile`) that names it and how to
+recover, and it is never written to. Stores written before the application id was set
+(``application_id`` 0) are ours when they hold our tables; a writer sets the id when it
+opens one.
+
+A new store is built under a unique temporary name in its folder and linked into place
+whole, so no empty or half-created store is ever left at the path (an empty file there is
+refused as truncated).
+
 Reading goes through pandas: :func:`load_runs`, :func:`load_series`, :func:`load_artifacts`.
-Reading imports neither JAX nor an integrator, so the report stage stays light.
+Readers open the file read-only, and where that cannot work (a read-only folder, where
+SQLite cannot make the shared-memory file of write-ahead logging) as immutable, so the
+report reads a store it cannot write. Reading imports neither JAX nor an integrator, so the
+report stage stays light.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import sqlite3
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -35,6 +53,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from benchmarks.files import new_file_mode
 from benchmarks.records import COLUMNS, TEXT_COLUMNS, Record, provenance
 
 SCHEMA_VERSION = 2
@@ -50,8 +69,28 @@ SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha":
 TEXT = {*TEXT_COLUMNS, *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
 
 
+#: SQLite ``application_id`` of a driftbench store (``DRFT``), read by ``file(1)`` too.
+APPLICATION_ID = 0x44524654
+#: Tables a store of any version holds: how a store written before the application id was
+#: set is told from another program's SQLite file.
+OUR_TABLES = frozenset({"sessions", "runs", "series"})
+#: The first 16 bytes of every SQLite database file.
+SQLITE_MAGIC = b"SQLite format 3\x00"
+#: What every refusal of a file says to do about it.
+RECOVER = ("it was left as it is: move it aside (or restore a backup) to start a new store "
+           "there, or give another --out")
+
+
 class StoreError(RuntimeError):
-    """A store that cannot be opened: missing, or written by newer code."""
+    """A store that cannot be opened: missing, written by newer code, damaged or foreign."""
+
+
+class DamagedStore(StoreError):
+    """A store file that is truncated or whose pages fail SQLite's checks."""
+
+
+class ForeignFile(StoreError):
+    """A file at a store's path that is not a driftbench store (another program's)."""
 
 
 # --------------------------------------------------------------------------- schema
@@ -140,31 +179,171 @@ def _table_columns(db: sqlite3.Connection, table: str) -> list[str]:
     return [row[1] for row in db.execute(f'PRAGMA table_info("{table}")')]
 
 
+# --------------------------------------------------------------------------- identity
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A connection that cannot write ``path``: ``mode=ro``, else ``immutable=1``.
+
+    A read-only open of a write-ahead-logged database needs its shared-memory file, which
+    SQLite cannot make in a read-only folder; an immutable open needs none but does not
+    see a write-ahead log, so it is refused while a non-empty one lies beside the file.
+    """
+    uri = path.resolve().as_uri()
+    con = sqlite3.connect(uri + "?mode=ro", uri=True, timeout=30.0)
+    try:
+        con.execute("PRAGMA schema_version").fetchone()
+        return con
+    except sqlite3.OperationalError as exc:
+        con.close()
+        if "unable to open" not in str(exc) and "readonly" not in str(exc):
+            raise
+    wal = path.with_name(path.name + "-wal")
+    if wal.exists() and wal.stat().st_size > 0:
+        raise StoreError(f"{path}: cannot be read where it is (a read-only folder) while its "
+                         f"write-ahead log {wal.name} holds runs; copy the folder somewhere "
+                         f"writable and read the copy")
+    return sqlite3.connect(uri + "?immutable=1", uri=True, timeout=30.0)
+
+
+#: Files that passed :func:`identify`, by path and state: readers open a store once per
+#: run's series, and ``quick_check`` reads the whole file.
+_CHECKED: dict[tuple, int] = {}
+
+
+def _state(path: Path) -> tuple:
+    """What changes when a store or its write-ahead log is written."""
+    wal = path.with_name(path.name + "-wal")
+    stats = [path.stat(), *([wal.stat()] if wal.exists() else [])]
+    return (str(path.resolve()), *((st.st_size, st.st_mtime_ns) for st in stats))
+
+
+def identify(path) -> int:
+    """Check that ``path`` is a sound driftbench store without writing to it; return its
+    ``application_id`` (:data:`APPLICATION_ID`, or 0 for a store written before it was
+    set).
+
+    Raises
+    ------
+    DamagedStore
+        An empty (truncated) file, or one that SQLite cannot read or whose
+        ``PRAGMA quick_check`` fails.
+    ForeignFile
+        A file that is not SQLite, or an SQLite file of another program (another
+        application id, or none and not our tables).
+    """
+    path = Path(path)
+    try:
+        state = _state(path)
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    if state in _CHECKED:
+        return _CHECKED[state]
+    try:
+        with open(path, "rb") as fh:
+            header = fh.read(len(SQLITE_MAGIC))
+    except OSError as exc:
+        raise StoreError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    if not header:
+        raise DamagedStore(f"{path}: damaged results store (the file is empty: truncated); "
+                           f"{RECOVER}")
+    if header != SQLITE_MAGIC:
+        raise ForeignFile(f"{path}: not a driftbench results store (not an SQLite file); "
+                          f"{RECOVER}")
+    try:
+        con = _connect_read_only(path)
+        try:
+            app = con.execute("PRAGMA application_id").fetchone()[0]
+            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master "
+                                                "WHERE type = 'table'")}
+            if app != APPLICATION_ID and (app != 0 or not OUR_TABLES <= tables):
+                what = (f"application id {app:#x}" if app else
+                        f"its tables are {', '.join(sorted(tables)) or 'none'}")
+                raise ForeignFile(f"{path}: not a driftbench results store (an SQLite file "
+                                  f"of another program: {what}); {RECOVER}")
+            problems = [r[0] for r in con.execute("PRAGMA quick_check")]
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as exc:
+        raise DamagedStore(f"{path}: damaged results store (SQLite: {exc}); "
+                           f"{RECOVER}") from None
+    if problems != ["ok"]:
+        raise DamagedStore(f"{path}: damaged results store (quick_check: {problems[0]}"
+                           f"{f' and {len(problems) - 1} more' if len(problems) > 1 else ''}"
+                           f"); {RECOVER}")
+    _CHECKED[state] = app
+    return app
+
+
+def _create_file(path: Path, columns) -> None:
+    """Build a new store under a unique temporary name beside ``path`` and link it into
+    place; a store that another process put there meanwhile is kept."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        os.chmod(tmp, new_file_mode(path))
+        db = sqlite3.connect(tmp)
+        try:
+            with db:
+                _create(db, columns)
+            db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            db.execute("PRAGMA journal_mode=WAL")
+        finally:
+            db.close()
+        try:
+            os.link(tmp, path)  # unlike a rename, never replaces a store made meanwhile
+        except FileExistsError:
+            pass
+    finally:
+        for leftover in (tmp, f"{tmp}-wal", f"{tmp}-shm", f"{tmp}-journal"):
+            Path(leftover).unlink(missing_ok=True)
+
+
 # --------------------------------------------------------------------------- writer
 
 class Store:
     """Append-only access to a results store (``driftbench.sqlite``).
 
-    Opening creates the file, or migrates an older one in place and adds the ``runs.csv``
-    columns it lacks.
+    Opening creates the file (:func:`_create_file`), or checks an existing one
+    (:func:`identify`: a damaged or foreign file raises before anything is written),
+    migrates an older one in place, adds the ``runs.csv`` columns it lacks and sets the
+    application id of a store written before it was set.
+
+    Raises
+    ------
+    StoreError
+        A file that is refused (:class:`DamagedStore`, :class:`ForeignFile`), written by
+        newer code, or that cannot be created (the message says why, on one line).
     """
 
     def __init__(self, path: Path):
         self.columns = COLUMNS
         self.path = Path(path)
-        self.db = sqlite3.connect(self.path, timeout=30.0)
+        try:
+            if not self.path.exists():
+                _create_file(self.path, self.columns)
+            app = identify(self.path)
+            self.db = sqlite3.connect(self.path, timeout=30.0)
+        except sqlite3.Error as exc:
+            raise StoreError(f"{self.path}: cannot create or open the results store: "
+                             f"{exc}") from None
+        try:
+            self._open(app)
+        except BaseException:
+            self.db.close()
+            raise
+
+    def _open(self, app: int) -> None:
+        """Set the connection up, migrate and complete the schema."""
         self.db.execute("PRAGMA journal_mode=WAL")
         # WAL with synchronous=NORMAL keeps every committed transaction through a crash
         # of the process; only a power loss may drop the last ones.
         self.db.execute("PRAGMA synchronous=NORMAL")
-        if _version(self.db) == 0:
-            with self.db:
-                _create(self.db, self.columns)
-        else:
-            migrate(self.db, str(self.path))
+        migrate(self.db, str(self.path))
         wanted = {"sessions": LATE_COLUMNS["sessions"],
                   "runs": {**LATE_COLUMNS["runs"], **{c: "" for c in self.columns}}}
         with self.db:
+            if app != APPLICATION_ID:
+                self.db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
             for table, columns in wanted.items():
                 have = set(_table_columns(self.db, table))
                 for column, kind in columns.items():
@@ -263,7 +442,11 @@ def _reader(db) -> sqlite3.Connection:
     path = Path(db)
     if not path.exists():
         raise StoreError(f"{path}: no results store")
-    con = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=30.0)
+    identify(path)
+    try:
+        con = _connect_read_only(path)
+    except sqlite3.Error as exc:
+        raise StoreError(f"{path}: cannot be read: {exc}") from None
     if _version(con) < SCHEMA_VERSION:
         memory = sqlite3.connect(":memory:")
         con.backup(memory)

@@ -35,9 +35,12 @@ target tables (cheapest run reaching each) for this suite's runs.
 (:mod:`benchmarks.cluster`) unless the command line names an engine (``--jobs`` or
 ``--cluster``).
 
-A file that is not valid TOML, has an unknown key, a value of the wrong type or out of
-range, or names an unknown problem, integrator or study is refused with one line that
-names the file, the line and what is wrong.
+A file that is not valid TOML (nested too deeply included), has an unknown key, a value
+of the wrong type or out of range, or names an unknown problem, integrator or study is
+refused with one line that names the file, the line and what is wrong.
+
+Entries that repeat a run (the same problem, parameters, method, options and horizon, in
+one group or in two) are run once (:mod:`benchmarks.batch`).
 """
 
 from __future__ import annotations
@@ -167,6 +170,9 @@ def load(name: str) -> Suite:
         at = re.search(r"\(at line (\d+), column \d+\)", str(exc))
         raise SuiteError(f"{path}:{at.group(1)}: invalid TOML: {exc}" if at else
                          f"{path}: invalid TOML: {exc}") from None
+    except RecursionError:  # the parser recurses once per level of nested arrays and tables
+        raise SuiteError(f"{path}: invalid suite file: arrays or tables nested too deeply "
+                         f"to read") from None
 
     def fail(line: int, what: str):
         raise SuiteError(f"{path}:{line}: {what}" if line else f"{path}: {what}")
@@ -224,7 +230,10 @@ def load(name: str) -> Suite:
                 fail(span[0] if span else 0, f"[[group]] {k + 1} lacks the required key "
                                              f"{required!r}")
         for spec in group["problems"]:
-            problem = problems.split_spec(spec)[0]
+            try:
+                problem = problems.split_spec(spec)[0]
+            except SpecError as exc:
+                fail(line_of("problems"), f"{exc}{where}")
             if problem not in known:
                 fail(line_of("problems"), f"unknown problem {problem!r}{where}"
                                           f"{suggest(problem, known)}; known: {', '.join(known)}")

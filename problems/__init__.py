@@ -68,7 +68,23 @@ class LoadError(SpecError):
     """User code that cannot be loaded: the message names the file and what is wrong."""
 
 
-def register(name: str, origin: str | None = None):
+class SizeError(SpecError):
+    """A problem spec above its size limit (see :func:`check_size`)."""
+
+
+#: Largest product of a problem's size parameters built without ``allow_large``: four
+#: times the largest size the scaling study runs (16384), far below sizes whose building
+#: alone exhausts memory (``chain:N=1000000000`` asks for 15 GiB).
+SIZE_LIMIT = 100_000
+#: Whole-number parameters that are not sizes.
+NOT_SIZES = frozenset({"seed"})
+#: Size limits that problems declare (:func:`register`'s ``size_limit``), by name.
+SIZE_LIMITS: dict[str, int] = {}
+#: How a caller lifts the size limits, as error messages say it.
+ALLOW_LARGE = "--allow-large (allow_large=True in Python)"
+
+
+def register(name: str, origin: str | None = None, size_limit: int | None = None):
     """Decorator: register a case factory under ``name``.
 
     Parameters
@@ -78,6 +94,11 @@ def register(name: str, origin: str | None = None):
     origin : str, optional
         Where the factory comes from, as ``--list`` shows it; default: the file, module or
         package being loaded (:func:`load`), else ``built-in``.
+    size_limit : int, optional
+        The largest product of the problem's size parameters (its whole-number parameters
+        but ``seed``: counts of bodies, rings, modes) that is built without
+        ``allow_large``; default :data:`SIZE_LIMIT`. A problem whose memory grows faster
+        than its size (a dense matrix) declares a lower one.
 
     The factory's keyword arguments, all with defaults, are the problem's parameters
     (``name:key=value,...``); it returns a :class:`Case` (build it with
@@ -98,6 +119,8 @@ def register(name: str, origin: str | None = None):
             raise ValueError(f"problem {name!r} registered twice (first by {ORIGINS[name]})")
         REGISTRY[name] = factory
         ORIGINS[name] = origin or (_loading[-1] if _loading else "built-in")
+        if size_limit is not None:
+            SIZE_LIMITS[name] = size_limit
         return factory
 
     return wrap
@@ -136,6 +159,8 @@ def split_spec(spec: str) -> tuple[str, dict[str, str]]:
             key, eq, value = item.partition("=")
             if not eq or not key.strip():
                 raise SpecError(f"{spec!r}: option {item!r} is not of the form key=value")
+            if key.strip() in options:  # the last value winning would hide a typo
+                raise SpecError(f"{spec!r}: {key.strip()!r} is given twice")
             options[key.strip()] = value.strip()
     return name, options
 
@@ -163,6 +188,41 @@ def make(spec: str, **overrides) -> Case:
         kwargs[key] = parse_value(text, defaults[key], f"problem {name!r}, parameter {key!r}")
     kwargs.update(overrides)
     return REGISTRY[name](**kwargs)
+
+
+def check_size(spec: str) -> None:
+    """Refuse ``spec`` when the product of its size parameters passes the problem's limit.
+
+    Only the spec's text and the factory's signature are read, nothing is built: the check
+    runs before a case is made, so a size that would exhaust memory costs nothing. Size
+    parameters are the whole-number ones but those in :data:`NOT_SIZES`.
+
+    Raises
+    ------
+    SizeError
+        Naming the parameters, the limit and the option that lifts it.
+    SpecError
+        A spec that cannot be parsed (an unknown name is left to :func:`make`).
+    """
+    _load()
+    name, raw = split_spec(spec)
+    if name not in REGISTRY:
+        return
+    sizes = {}
+    for key, default in parameters(name).items():
+        if isinstance(default, int) and not isinstance(default, bool) and key not in NOT_SIZES:
+            sizes[key] = (parse_value(raw[key], default, f"problem {name!r}, parameter {key!r}")
+                          if key in raw else default)
+    product = 1
+    for value in sizes.values():
+        product *= abs(value)
+    limit = SIZE_LIMITS.get(name, SIZE_LIMIT)
+    if product > limit:
+        what = (f"{' * '.join(sizes)} = {' * '.join(map(str, sizes.values()))} = {product}"
+                if len(sizes) > 1 else f"{next(iter(sizes))} = {product}")
+        raise SizeError(f"problem {name!r}: {what} is above its size limit of {limit} "
+                        f"(the product of its size parameters {', '.join(sizes)}); give "
+                        f"{ALLOW_LARGE} to build it anyway")
 
 
 def names() -> list[str]:

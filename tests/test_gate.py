@@ -48,7 +48,9 @@ def test_status_changes_and_sensitive_problems():
     assert found[("b", "fail_step")].kind == "regression"  # fails earlier than before
     sensitive = found[("c", "max_pos_residual")]
     assert sensitive.kind == "regression" and not sensitive.gating
-    assert not found[("new", "run")].gating and not found[("gone", "run")].gating
+    assert not found[("new", "run")].gating
+    # A baseline run that did not run would let the gate pass by comparing less.
+    assert found[("gone", "run")].kind == "regression" and found[("gone", "run")].gating
     back = {(f.run, f.metric): f.kind for f in compare(cur, base)}
     assert back[("a", "status")] == "improvement"
 
@@ -113,3 +115,58 @@ def test_bad_input_exits_2_before_running(tmp_path, capsys):
     suite.write_text(SUITE)
     assert check.main(["--suite", str(suite), "--baseline", str(tmp_path / "none.json")]) == 2
     assert "--update" in capsys.readouterr().err
+
+
+def baseline_file(path, suite="gate", runs=None):
+    runs = {"pendulum / rattle / h=0.05 / t_end=5": entry(max_pos_residual=1e-12)} \
+        if runs is None else runs
+    path.write_text(json.dumps({"format": check.BASELINE_FORMAT, "suite": suite,
+                                "runs": runs}, allow_nan=True))
+    return path
+
+
+@pytest.mark.parametrize("suite, runs, words", [
+    ("library", None, "made for suite 'library', not 'gate'"),
+    ("gate", {}, "holds no runs"),
+    ("gate", {"a": {"status": "ok"}}, "run 'a' needs a status and metrics"),
+    ("gate", {"a": {"metrics": {}}}, "run 'a' needs a status and metrics"),
+    ("gate", {"a": entry(max_pos_residual=float("nan"))}, "max_pos_residual = nan"),
+    ("gate", {"a": entry(final_state_error=float("inf"))}, "final_state_error = inf"),
+    ("gate", {"a": entry(scd="12")}, "scd = '12'"),
+])
+def test_baselines_that_cannot_gate_are_refused_before_anything_runs(suite, runs, words,
+                                                                      tmp_path, capsys):
+    (tmp_path / "gate.toml").write_text(SUITE)
+    base = baseline_file(tmp_path / "b.json", suite, runs)
+    out = tmp_path / "out"
+    code = check.main(["--suite", str(tmp_path / "gate.toml"), "--baseline", str(base),
+                       "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == check.EXIT_INPUT and words in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()  # refused before the batch made its output folder
+
+
+def test_an_exact_final_state_is_a_valid_baseline(tmp_path):
+    # scd = +inf is what a run matching its reference exactly records; it is comparable.
+    base = baseline_file(tmp_path / "b.json", runs={"a": entry(scd=float("inf"))})
+    assert check.read_baseline(base, "gate")["runs"]["a"]["metrics"]["scd"] == float("inf")
+
+
+def test_a_baseline_run_missing_from_the_results_fails_and_the_count_is_said(
+        tmp_path, monkeypatch, capsys):
+    from benchmarks.records import Record, RunSpec, blank_row
+    (tmp_path / "gate.toml").write_text(SUITE)
+    ran = RunSpec("pendulum", "rattle", 0.05, t_end=5.0)
+    gone = RunSpec("pendulum", "lobatto3ab3", 0.05, t_end=5.0)
+    base = baseline_file(tmp_path / "b.json", runs={
+        ran.label(): entry(max_pos_residual=1e-12), gone.label(): entry(max_pos_residual=1e-12)})
+    # Only the gate's bookkeeping is under test: the batch returns one of the two runs.
+    monkeypatch.setattr(check, "run_specs", lambda *a, **k: [Record(blank_row(
+        ran, status="ok", max_pos_residual=1e-12))])
+    code = check.main(["--suite", str(tmp_path / "gate.toml"), "--baseline", str(base)])
+    out = capsys.readouterr().out.strip().splitlines()
+    assert code == check.EXIT_REGRESSION
+    assert any("in the baseline, not run" in line and "lobatto3ab3" in line for line in out)
+    assert out[-1].startswith("drift gate FAILED: compared 1 runs") and "1 of its runs missing" \
+        in out[-1], out[-1]
