@@ -6,12 +6,13 @@
     python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json --update
 
 Each run of the suite is matched to the baseline's run of the same identity
-(:func:`benchmarks.records.identity`: problem, integrator, setting, horizon). Every metric
-is compared in its own direction with its own :class:`Tolerance`: lower is better for
-constraint residuals, energy and invariant errors and final errors; higher is better for
-``scd`` (significant correct digits). A metric regresses when it is worse than the
-baseline by more than its relative factor *and* lies above its absolute floor (values at
-or below the floor are round-off, which may differ between machines). The drift classes
+(:func:`benchmarks.records.identity`: problem, integrator, setting, horizon). Every
+metric is compared in its own direction with its own
+:class:`benchmarks.records.Tolerance` (the rule the report's history shares): lower is
+better for constraint residuals, energy and invariant errors and final errors; higher is
+better for ``scd`` (significant correct digits). A metric regresses when it is worse
+than the baseline by more than its relative factor *and* lies above its absolute floor
+(values at or below the floor are round-off, which may differ between machines). The drift classes
 of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`) regress when
 they grow faster than before (bounded, linear, quadratic, superquadratic, exponential). A
 run that finished in the baseline and now does not (``failed``, ``error``, ``timeout``)
@@ -49,45 +50,13 @@ from benchmarks.batch import run_specs
 from benchmarks.drift import SEVERITY, kind_of
 from benchmarks.executors import load_plugins
 from benchmarks.files import replace_file
-from benchmarks.records import InputError, identity, one_line, provenance
+from benchmarks.records import (TOLERANCES, InputError, compare_metric, identity, one_line,
+                                provenance)
 
 EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
 BASELINE_FORMAT = 1
 #: Statuses of runs that completed their horizon.
 FINISHED = ("ok",)
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """How one metric is compared.
-
-    ``lower`` metrics regress when ``current > factor * baseline`` and ``current > floor``;
-    ``higher`` metrics (digits, ``scd``) regress when ``min(current, floor)`` falls below
-    ``min(baseline, floor) - log10(factor)``, the floor there being the digit count beyond
-    which differences are round-off.
-    """
-
-    direction: str  # "lower" or "higher" is better
-    factor: float
-    floor: float
-
-
-#: Per-metric tolerances. The factor of 4 (0.6 digits for ``scd``) leaves room for what a
-#: change of round-off alone does: residuals accumulate it as a random walk, and an adaptive
-#: method's step sequence jumps when a rejected step turns accepted, which was seen to move
-#: IDA's final error on Andrews' mechanism by a factor of 2 after a refactoring of the
-#: mechanics; the regressions the gate is for move metrics by orders of magnitude. The
-#: floors sit a few hundred ulps above the round-off of O(1) quantities, low enough that a
-#: Newton iteration stopped 1e6 times too early shows in the residuals.
-TOLERANCES: dict[str, Tolerance] = {
-    "max_pos_residual": Tolerance("lower", 4.0, 1e-13),
-    "max_vel_residual": Tolerance("lower", 4.0, 1e-13),
-    "rel_energy_error": Tolerance("lower", 4.0, 1e-13),
-    "final_state_error": Tolerance("lower", 4.0, 1e-12),
-    "scd": Tolerance("higher", 4.0, 11.0),
-}
-#: Tolerance of every declared invariant's error (``inv:NAME``).
-INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
 
 
 #: The recorded drift classes the gate compares (runs.csv columns).
@@ -109,10 +78,6 @@ def metrics_of(row: dict) -> dict[str, float | None]:
     return out
 
 
-def tolerance(metric: str) -> Tolerance:
-    return INVARIANT_TOLERANCE if metric.startswith("inv:") else TOLERANCES[metric]
-
-
 @dataclass(frozen=True)
 class Finding:
     """One difference between the baseline and the current run."""
@@ -132,38 +97,6 @@ def _fmt(x) -> str:
     if isinstance(x, str):
         return x
     return f"{x:.3g}"
-
-
-def compare_metric(metric: str, base: float | None, cur: float | None) -> tuple[str | None, str]:
-    """``("regression" | "improvement" | None, change text)`` for one metric."""
-    tol = tolerance(metric)
-    if base is None and cur is None:
-        return None, ""
-    if cur is None:
-        return "regression", "no longer measured"
-    if base is None:
-        return None, "newly measured"
-    if not math.isfinite(cur) and not (tol.direction == "higher" and cur > 0):
-        return ("regression", "not finite") if math.isfinite(base) else (None, "")
-    if tol.direction == "lower":
-        if cur > tol.factor * base and cur > tol.floor:
-            return "regression", _ratio(base, cur)
-        if base > tol.factor * cur and base > tol.floor:
-            return "improvement", _ratio(base, cur)
-        return None, ""
-    b, c = min(base, tol.floor), min(cur, tol.floor)
-    digits = math.log10(tol.factor)
-    if c < b - digits:
-        return "regression", f"{c - b:+.2f} digits"
-    if c > b + digits:
-        return "improvement", f"{c - b:+.2f} digits"
-    return None, ""
-
-
-def _ratio(base: float, cur: float) -> str:
-    if base == 0:
-        return "from 0"
-    return f"x{cur / base:.3g}"
 
 
 def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:

@@ -132,10 +132,11 @@ def check_arguments(args) -> None:
                 raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
 
 
-def plan(args) -> tuple[list[RunSpec], dict]:
-    """The runs and the keyword arguments of :func:`benchmarks.batch.run_specs` (suite
-    name, repeats, studies, default time limit, Dask cluster, user code to load); loads
-    ``--load`` first, so that what it registers can be named."""
+def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
+    """The runs, the keyword arguments of :func:`benchmarks.batch.run_specs` (suite name,
+    repeats, studies, default time limit, Dask cluster, user code to load) and the suite's
+    accuracy targets for the report (empty: the report's defaults); loads ``--load``
+    first, so that what it registers can be named."""
     check_arguments(args)
     try:
         loads = [problems.load(source) for source in args.load]
@@ -152,7 +153,7 @@ def plan(args) -> tuple[list[RunSpec], dict]:
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
         return runs, dict(suite="ad-hoc", repeats=args.repeats or 3, timeout=args.timeout,
-                          cluster=args.cluster, load=loads)
+                          cluster=args.cluster, load=loads), ()
     suite = suites.load(args.suite or "default")
     runs = suite.runs
     if args.t_end is not None:
@@ -163,7 +164,8 @@ def plan(args) -> tuple[list[RunSpec], dict]:
     cluster = args.cluster or (suite.cluster if args.jobs is None else None)
     return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,
                       studies=suite.studies, cluster=cluster, load=[*loads, *suite.load],
-                      timeout=args.timeout if args.timeout is not None else suite.timeout)
+                      timeout=args.timeout if args.timeout is not None else suite.timeout), \
+        suite.targets
 
 
 class Interrupted(BaseException):
@@ -201,7 +203,7 @@ def main(argv=None) -> int:
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         load_plugins()
-        runs, options = plan(args)
+        runs, options, targets = plan(args)
         records = run_specs(runs, args.out, args.jobs, resume=args.resume,
                             allow_large=args.allow_large, **options)
     except (InputError, Interrupted) as exc:
@@ -221,7 +223,8 @@ def main(argv=None) -> int:
     print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
     if not args.no_report:
         try:
-            for path in build_report(args.out / "driftbench.sqlite", args.out):
+            for path in build_report(args.out / "driftbench.sqlite", args.out,
+                                     **({"targets": targets} if targets else {})):
                 print(f"wrote {path}")
         except OSError as exc:  # a full disk: the runs are written, the report is not
             print(f"error: the report under {args.out} could not be written: "
