@@ -76,7 +76,7 @@ from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunS
                                 blank_row, identity, one_line, provenance)
 from benchmarks.store import STORE_NAME, UNFINISHED, Store, StoreError, load_runs
 from integrators.base import ERROR, TIMEOUT
-from problems import suggest
+from problems.spec import SpecError, split_spec, suggest
 from studies import STUDIES
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
@@ -119,7 +119,7 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     """
     runs = []
     for p, i in itertools.product(problem_specs, integrator_specs):
-        key = problems.split_spec(i)[0]
+        key = split_spec(i)[0]
         if key not in integrators.REGISTRY:
             integrators.make(i)  # raises the error that names the unknown key
         if integrators.cls_of(key).adaptive:
@@ -176,7 +176,7 @@ def validate(specs: Iterable[RunSpec], version: str, grid_options: dict | None =
                 if not allow_large:
                     problems.check_size(spec.problem)
                 built[spec] = build(spec)
-            name = problems.split_spec(spec.problem)[0]
+            name = split_spec(spec.problem)[0]
             # The library's own problems are verified by its tests; user code is checked
             # here, once per problem spec, before it can spoil every run.
             if spec.problem not in audited and problems.origin(name) != "built-in":
@@ -194,7 +194,7 @@ def validate(specs: Iterable[RunSpec], version: str, grid_options: dict | None =
                 if notes is not None and (steps >= LONG_STEPS or steps * n >= LONG_WORK):
                     notes.append(f"note: {spec.label()}: a long run, {size}")
             out.append(fixed)
-        except (InputError, AuditError, problems.SpecError) as exc:
+        except (InputError, AuditError, SpecError) as exc:
             raise InputError(one_line(f"{where}{exc}")) from None
         except Exception as exc:  # user code or a defect met while building: one line
             raise InputError(one_line(f"{where}{spec.label()}: {explain(exc)}")) from None

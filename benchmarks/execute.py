@@ -31,6 +31,7 @@ from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
 from benchmarks.records import Record, RunSpec, blank_row, provenance, run_key
 from integrators.base import COUNTERS, ERROR, FAILED, OK, Grid, Trajectory
+from problems.spec import parse_value, split_spec
 
 
 @functools.lru_cache(maxsize=8)
@@ -58,11 +59,11 @@ def known(spec: RunSpec, case, integ, grid_options: dict | None, version: str) -
     """The columns fixed by the case and the integrator before anything runs, and the
     run's ``run_key`` (:func:`benchmarks.records.run_key`) for code version ``version``."""
     opts = integ.options()
-    name, raw = problems.split_spec(spec.problem)
+    name, raw = split_spec(spec.problem)
     arguments = problems.parameters(name)
-    arguments.update({k: problems.parse_value(v, arguments[k], k) for k, v in raw.items()})
+    arguments.update({k: parse_value(v, arguments[k], k) for k, v in raw.items()})
     resolved = {"problem": name, "arguments": arguments, "params": dict(case.params),
-                "integrator": problems.split_spec(spec.integrator)[0], "options": opts,
+                "integrator": split_spec(spec.integrator)[0], "options": opts,
                 "t_end": case.t_end, "grid": grid_options or {}}
     return dict(t_end=case.t_end, options=json.dumps(opts, default=str),
                 params=json.dumps(case.params, default=str), h=opts.get("h"),

@@ -55,7 +55,7 @@ import problems
 from benchmarks.batch import STUDIES, expand
 from benchmarks.cluster import parse as parse_cluster
 from benchmarks.records import InputError, RunSpec
-from problems import SpecError, suggest
+from problems.spec import SpecError, split_spec, suggest
 
 SUITE_DIR = Path(__file__).parent / "suites"
 
@@ -231,7 +231,7 @@ def load(name: str) -> Suite:
                                              f"{required!r}")
         for spec in group["problems"]:
             try:
-                problem = problems.split_spec(spec)[0]
+                problem = split_spec(spec)[0]
             except SpecError as exc:
                 fail(line_of("problems"), f"{exc}{where}")
             if problem not in known:

@@ -10,7 +10,7 @@ import dataclasses
 import importlib
 
 from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
-from problems import SpecError, parse_value, split_spec, suggest
+from problems.spec import SpecError, parse_value, split_spec, suggest
 
 #: key -> ("module:Class", preset options)
 REGISTRY: dict[str, tuple[str, dict[str, object]]] = {

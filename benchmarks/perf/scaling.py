@@ -649,7 +649,7 @@ def settings_of(args) -> dict:
                              f"{', '.join(STEP_SIZES)} and H > 0")
         steps[problem] = h
     import integrators
-    from problems import SpecError, split_spec
+    from problems.spec import SpecError, split_spec
 
     newton_tol = None
     for family in args.families:
