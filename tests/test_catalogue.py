@@ -14,7 +14,7 @@ import pytest
 import integrators
 import problems
 from integrators import Grid, Integrator
-from tests.helpers import state_error
+from helpers import state_error
 
 KEYS = integrators.keys()
 

@@ -1,9 +1,7 @@
 """Generalized-alpha, index 3 and stabilised index 2: order, constraints, multipliers, energy,
 stability, Newton scaling, options, and agreement with an independent implementation."""
 
-import sys
 from functools import lru_cache
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -18,9 +16,7 @@ from integrators import Grid
 from integrators.genalpha import Coefficients
 from problems import SpecError
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import independent as ind  # noqa: E402
+import independent as ind
 
 FORMS = ["genalpha", "genalpha-ggl"]
 

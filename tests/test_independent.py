@@ -8,18 +8,14 @@ order against the closed-form pendulum, symplecticity of the one-step map, RATTL
 
 from __future__ import annotations
 
-import sys
 from fractions import Fraction
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.special import ellipj, ellipk
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import independent as ind  # noqa: E402
-from independent import Q5  # noqa: E402
+import independent as ind
+from independent import Q5
 
 # ----------------------------------------------------------------------------------------
 # Tolerance of the comparison (final q and v, max-norm, absolute).

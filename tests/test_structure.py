@@ -9,7 +9,7 @@ import problems
 from integrators.ida import FORMULATIONS, consistent_values
 from problems.mechanics import System
 from problems.structure import SparseJacobian
-from tests.helpers import solve
+from helpers import solve
 
 STRUCTURED = ("banded", "superlu")
 
