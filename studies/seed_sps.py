@@ -178,7 +178,10 @@ def _figure4(plt, series, path: Path) -> None:
         if failed:
             ax.plot(t[-1], g[-1], "x", ms=9, mew=2, color=line.get_color())
     ax.axhline(BOUND, color="k", ls="--", lw=0.8, label=f"seed's bound {BOUND:g}")
-    ax.set_ylim(top=10.0)  # a blown-up run would squeeze every other line
+    # Up to a decade above the largest value drawn, and never above 10: a blown-up run
+    # would squeeze every other line.
+    drawn = [np.max(g) for _, t, g, _ in series if len(t)] + [BOUND]
+    ax.set_ylim(top=min(10.0, 10.0 * float(np.nanmax(drawn))))
     ax.set(xlabel="t", ylabel="|g(q_n)|", title=f"{PROBLEM}: |g| at each step, t in [0, 50]")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
     fig.tight_layout()
