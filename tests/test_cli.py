@@ -84,6 +84,7 @@ def test_bad_input_exits_2_with_one_line_and_no_traceback(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_sigkill_midway_then_resume_loses_and_redoes_nothing(tmp_path):
     out, marker = tmp_path / "out", uuid.uuid4().hex
     db = out / "driftbench.sqlite"
@@ -133,6 +134,7 @@ def test_sigkill_midway_then_resume_loses_and_redoes_nothing(tmp_path):
 
 @pytest.mark.parametrize("engine", [["--jobs", "1"], ["--cluster", "local:1"]],
                          ids=["pool", "dask"])
+@pytest.mark.slow
 def test_sigterm_stops_the_workers_and_keeps_the_store(engine, tmp_path):
     out, marker = tmp_path / "out", uuid.uuid4().hex
     db = out / "driftbench.sqlite"
@@ -150,6 +152,7 @@ def test_sigterm_stops_the_workers_and_keeps_the_store(engine, tmp_path):
     assert stored(db, "SELECT integrator, status FROM runs") == [("rattle", "ok")]
 
 
+@pytest.mark.slow
 def test_suite_time_holds_each_suite_to_its_budget(tmp_path, capsys):
     import json
 

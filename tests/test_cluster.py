@@ -24,6 +24,10 @@ from benchmarks.executors import PLUGIN_ENV, load_plugins
 from benchmarks.records import ACCURACY_COLUMNS, CODE_VERSION_ENV, RunSpec
 from benchmarks.store import load_runs
 
+
+# Every test here starts a Dask cluster or scheduler and workers in subprocesses.
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
 #: A built-in problem and a user's (loaded from the example file by the client and by

@@ -349,6 +349,7 @@ def test_ctrl_c_during_validation_exits_130(tmp_path):
     assert "interrupted (SIGINT)" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_an_interrupted_resume_keeps_the_skipped_runs_in_runs_csv(tmp_path):
     out = tmp_path / "out"
     first = ["--problems", "pendulum", "--integrators", "rattle", "lobatto3ab2", "--h", "0.1",

@@ -85,6 +85,7 @@ PLANT = textwrap.dedent(f"""
 """)
 
 
+@pytest.mark.slow
 def test_the_gate_passes_unchanged_code_and_fails_a_planted_regression(tmp_path):
     suite, baseline = tmp_path / "gate.toml", tmp_path / "baseline.json"
     suite.write_text(SUITE)

@@ -39,6 +39,7 @@ HEALTHY = [RunSpec("pendulum", "rattle", 0.05, t_end=1.0),
            RunSpec("sps-receiver", "lobatto3ab3", 0.1, t_end=2.0)]
 
 
+@pytest.mark.slow
 def test_faults_are_contained_and_healthy_runs_match_a_serial_run(tmp_path):
     faulty = [RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
               RunSpec("pendulum", "test-kill", 0.1, t_end=1.0),
@@ -95,6 +96,7 @@ def determinism_specs() -> list[RunSpec]:
     return specs
 
 
+@pytest.mark.slow
 def test_the_same_runs_twice_give_bit_identical_accuracy(tmp_path):
     # Each run twice in one batch, in whichever worker is free (the fault test above
     # compares runs made in different invocations).

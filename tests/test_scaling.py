@@ -162,6 +162,7 @@ def test_bad_options_exit_2_with_one_line(argv, capsys):
     assert err.startswith("error:") and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_family_that_fails_stops_and_an_error_exits_1(tmp_path, monkeypatch, capsys):
     """Three families on chain:N=2 and 4: one finishes both, one fails its Newton (data: it
     stops, N=4 is not run), one raises (a defect: exit status 1)."""

@@ -136,6 +136,7 @@ def redundant_chain():
                               energy_scale=case.energy_scale)
 
 
+@pytest.mark.slow
 def test_one_policy_for_redundant_constraints(monkeypatch):
     # Every path takes an exact solution of the consistent, singular system (the same
     # constraint force, so the same run to round-off): dense and banded the basic one

@@ -30,6 +30,7 @@ def pinned_version(monkeypatch):
     monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
 
 
+@pytest.mark.slow
 def test_the_examples_run_with_every_family_and_meet_their_references(tmp_path):
     runs = sweep(["slider-crank", "spherical-pendulum"],
                  ["rattle", "lobatto3ab3", "ida-ggl", "baumgarte-dopri5"], h=[0.01],
@@ -215,6 +216,7 @@ def test_user_code_is_loaded_by_the_module_name_too(tmp_path, monkeypatch):
         problems.load("no_such_models_here")
 
 
+@pytest.mark.slow
 def test_the_drift_gate_takes_a_suite_that_loads_user_code(tmp_path, capsys):
     from benchmarks import check
 
