@@ -574,6 +574,10 @@ class SuperLU(Schur):
         key = hashlib.blake2b(values.tobytes(), digest_size=16).digest()
         if self._last is not None and self._last[0] == key:
             return self._last[1]
+        if not np.all(np.isfinite(values)):  # a diverged iterate: the step fails, as data
+            entry = (None, None, np.nan, False)
+            self._last = (key, entry)
+            return entry
         G = self._G.copy()
         G.data = values[self._slot]
         S = (G @ self._dinv @ G.T).tocsc()
@@ -611,9 +615,11 @@ class SuperLU(Schur):
     def solve(self, F: Factor, rhs):
         def host(values, rhs):
             solver, D, _, ok = self._factorise(np.asarray(values))
-            if not ok:
-                return np.full(rhs.shape, np.nan)
             r = np.asarray(rhs)
+            # A singular S, or a diverged Newton iterate: NaN, which fails the step with
+            # the loop's message instead of raising out of the compiled loop.
+            if not ok or not np.all(np.isfinite(r)):
+                return np.full(rhs.shape, np.nan)
             Dr = D[:, None] if r.ndim == 2 else D
             return Dr * solver(Dr * r)
 

@@ -38,9 +38,7 @@ def rigid_motions(q):
             **{f"rotation {a}": np.cross(e, q).ravel() for a, e in zip("xyz", axes)}}
 
 
-# lobatto3ab3 solves its 3-stage system (about 700 unknowns here) with dense LU: about
-# 3 minutes on the 2-core machine, hence slow.
-@pytest.mark.parametrize("key", ["rattle", pytest.param("lobatto3ab3", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
 def test_symmetric_lattice_rings_follow_the_reduced_model(key):
     _, reduced = solve("sps-receiver", key, t_end=8.0, h=0.05)
     case, lattice = solve("sps-lattice:N=6,K=3", key, t_end=8.0, h=0.05)
@@ -135,8 +133,9 @@ def test_perturbed_lattice_keeps_constraints_energy_and_angular_momentum():
     # Newton solution in such a passage at t = 19.69 (measured; h = 0.005 passes it).
     # The horizon stops at t = 12: at t = 12.18 the rings pass a configuration where
     # G M^-1 G^T is numerically singular, and RATTLE's simplified Newton on the
-    # structured path (banded, with the dense rank-revealing fallback) does not converge
-    # there (measured); the dense path passes it but takes about 30 minutes.
+    # structured path (SuperLU, a least-squares solve for the singular S) diverges there:
+    # failed at step 2436, t = 12.175 -> 12.18 (measured); the dense path passes it but
+    # takes about 30 minutes.
     case, traj = solve("sps-lattice:N=16,K=8,perturb=0.01", "rattle", t_end=12.0, h=0.005)
     assert case.mech.n == 768 and case.mech.m == 597
     w = traj.windows

@@ -213,3 +213,23 @@ def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path(
         assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-11
         assert np.max(np.abs(traj.v_final - dense.v_final)) <= 1e-10
         assert np.max(traj.windows["pos"]) <= 1e-13
+
+
+def test_a_diverged_iterate_fails_the_superlu_solve_as_data():
+    # Non-finite G values or right-hand sides (a Newton iterate that diverged) give NaN,
+    # which the loop turns into a failed step with its message; nothing raises out of
+    # the host callback.
+    import jax.numpy as jnp
+
+    from problems.structure import schur
+
+    case = problems.make("chain:N=16")
+    S = schur(case.mech, "superlu")
+    q = jnp.asarray(case.q0)
+    good = S.factor(q, 0.0)
+    rhs = jnp.ones(case.mech.m)
+    assert np.all(np.isfinite(np.asarray(S.solve(good, rhs))))
+    assert np.all(np.isnan(np.asarray(S.solve(good, rhs * jnp.nan))))
+    bad = S.factor(q * jnp.nan, 0.0)
+    assert not bool(bad.ok)
+    assert np.all(np.isnan(np.asarray(S.solve(bad, rhs))))

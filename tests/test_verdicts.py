@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from reports.analysis import (FIT_MARGIN, ORDER_FLOOR, accuracy, at_floor, cheapest, convergence,
-                              cost_winner, fit, history, targets, timing)
+from reports.analysis import (accuracy, at_floor, cheapest, convergence, cost_winner, fit,
+                              history, targets, timing)
 
 
 def run(integrator, h=None, rtol=None, status="ok", wall=1.0, spread=(0.0, 0.0), repeats=3,
@@ -79,7 +79,7 @@ def test_a_final_error_at_the_floor_counts_as_the_floor():
     assert not at_floor(above) and accuracy(above, "final_state_error") == 1e-10
     # Without a recorded floor (an exact reference, an older store) only round-off is.
     assert not at_floor(run("a", final=1e-15))
-    assert accuracy(run("a", final=1e-15), "final_state_error") == ORDER_FLOOR
+    assert accuracy(run("a", final=1e-15), "final_state_error") == 1e-12  # the plateau
 
 
 def test_the_reference_error_does_not_decide_the_cost_at_matched_accuracy():
@@ -138,7 +138,7 @@ def test_points_at_the_floor_are_left_out_of_the_fit():
     h = np.array([4e-4, 2e-4, 1e-4, 5e-5])
     err = np.maximum(3e-6 * (h / 4e-4) ** 6, 1.4e-9)
     c = fit("lobatto3ab4", h, err, 6.0, plateau=1e-12, floor=2e-9)
-    assert c.threshold == FIT_MARGIN * 2e-9
+    assert c.threshold == pytest.approx(2e-8)  # a decade above the floor
     assert list(c.h[c.fitted]) == [4e-4, 2e-4]  # the two points above 2e-8
     assert c.order == pytest.approx(6.0, abs=1e-9)
     unmasked = fit("lobatto3ab4", h, err, 6.0, plateau=1e-12)
