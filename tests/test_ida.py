@@ -173,3 +173,15 @@ def test_failures_are_failed_rows_and_the_suite_goes_on():
     assert too_many["n_steps"] == 50 and too_many["t_final"] < 1.0
     assert too_many["fail_time"] == too_many["t_final"] and too_many["fail_step"] == 51
     assert healthy["status"] == OK and healthy["t_final"] == 1.0
+
+
+@pytest.mark.parametrize("linsolver", ["dense", "sparse"])
+def test_redundant_constraints_fail_at_set_up_with_the_rank(linsolver):
+    # bricard's 24 constraints have rank 23. Neither linear solver stops on the singular
+    # iteration matrix by itself (SuperLU_MT cut the step to 1e-30 for 337 s), so the rank
+    # is checked at set-up on either path.
+    case = problems.make("bricard").with_t_end(2.0)
+    traj = integrators.make("ida-ggl", linsolver=linsolver).prepare(
+        case, Grid(case.t0, case.t_end))()
+    assert traj.status == "failed" and traj.counts["n_steps"] == 0
+    assert "rank 23 < m = 24" in traj.message
