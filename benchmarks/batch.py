@@ -57,7 +57,7 @@ import math
 import sqlite3
 import sys
 from pathlib import Path
-from typing import Iterable, TextIO
+from typing import Callable, Iterable, TextIO
 
 import cloudpickle
 import numpy as np
@@ -376,8 +376,9 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     resume : bool
         Skip the runs whose ``run_key`` the store holds as finished.
     studies : iterable of str
-        Names of studies (:data:`studies.STUDIES`) run after the runs; their tables and figures go
-        to the store (section = the study's name), the files they write to
+        Names of studies (:data:`studies.STUDIES`), run on the same workers as the runs
+        (started first); their tables and figures go to the store (section = the
+        study's name), the files they write to
         ``out/studies/NAME``; a study that fails is stored as an ``error`` table with its
         message.
     grid_options : dict, optional
@@ -539,10 +540,15 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
                      f"run are in {csv_path} only")
         bar.finish(task.id, f"{task.label}: {_summary(record.row)}")
 
+    # Studies go first, beside the runs: each is one long task, and started last it would
+    # leave the other workers idle while it ends.
+    studies, report_study = _studies(store, session, targets, out, _limit(timeout), bar, fail)
+
+    def dispatch(task: Task, outcome: Outcome) -> None:
+        (report_study if task.kind == "study" else report)(task, outcome)
+
     try:
-        executor.run(tasks, report, on_start=lambda t: bar.start(t.id, t.label))
-        if targets:
-            _run_studies(executor, store, session, targets, out, _limit(timeout), bar, fail)
+        executor.run(studies + tasks, dispatch, on_start=lambda t: bar.start(t.id, t.label))
     finally:
         bar.close()
         if stream:
@@ -568,10 +574,11 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
     return records
 
 
-def _run_studies(executor: Executor, store: Store, session: int, targets: dict[str, str],
-                 out: Path, timeout: float | None, bar: Progress, fail) -> None:
-    """Run each study on the engine; write its files, store its tables and figures, or
-    its error; a store that refuses even the error is told to ``fail``."""
+def _studies(store: Store, session: int, targets: dict[str, str], out: Path,
+             timeout: float | None, bar: Progress, fail) -> tuple[list[Task], Callable]:
+    """The tasks of the studies ``targets`` and the report of each one's end: write its
+    files, store its tables and figures, or its error; a store that refuses even the error
+    is told to ``fail``."""
     tasks = [Task(-1 - k, "study", (name, target), timeout, f"study {name}")
              for k, (name, target) in enumerate(targets.items())]
 
@@ -605,7 +612,7 @@ def _run_studies(executor: Executor, store: Store, session: int, targets: dict[s
         status = "ok" if error is None else f"error: {error}"
         bar.finish(task.id, f"{task.label}: {status}")
 
-    executor.run(tasks, report, on_start=lambda t: bar.start(t.id, t.label))
+    return tasks, report
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:

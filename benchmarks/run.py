@@ -18,7 +18,7 @@ and recorded as ``timeout``, a worker that crashes is recorded as ``error`` with
 signal, and the suite goes on (:mod:`benchmarks.batch` says how wall times stay honest).
 ``--resume`` skips the runs the store already holds as finished (any status but ``error``
 and ``timeout``) for the same problem, parameters, options, ``t_end`` and code version. A
-suite's studies run after its runs.
+suite's studies run on the same workers as its runs, started first.
 
 Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten in suite
 order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as

@@ -21,7 +21,7 @@ tables of runs and ``studies``; each group runs every combination of its lists::
 
 ``studies = ["flexible-modal"]`` names studies that are not integrator runs: each is a
 function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in
-:data:`studies.STUDIES` (never taken from the file), run after the suite's runs.
+:data:`studies.STUDIES` (never taken from the file), run beside the suite's runs.
 A suite may hold only studies.
 
 ``load = ["models/arm.py", "mypackage.problems"]`` imports user code that registers
