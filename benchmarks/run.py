@@ -20,9 +20,9 @@ signal, and the suite goes on (:mod:`benchmarks.batch` says how wall times stay 
 and ``timeout``) for the same problem, parameters, options, ``t_end`` and code version. A
 suite's studies run on the same workers as its runs, started first.
 
-Writes ``runs.csv`` (one row per run, appended as each run finishes, rewritten in suite
-order at the end; after ``--resume`` it lists every run of the suite, the skipped ones as
-stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
+Writes ``runs.csv`` (one row per run, in suite order, replaced whole at the end, also
+when interrupted; while runs end their rows go to ``runs.partial.csv``; after ``--resume``
+it lists every run of the suite, the skipped ones as stored), appends the runs to the results store ``driftbench.sqlite`` and builds the report,
 all under ``--out``. Bad input (unknown names, malformed suite files, out-of-range
 options, inconsistent initial values, an unreachable cluster, a problem above its size
 limit or a run above the step limit without ``--allow-large``, a damaged or foreign store,
