@@ -92,15 +92,7 @@ LONG_STEPS, LONG_WORK = 10**6, 10**8
 
 class OutputError(InputError):
     """Results that could not all be written (a store or ``runs.csv`` that failed while the
-    batch ran): one line saying what failed and where every run's record is.
-
-    ``records`` holds the records of the batch (as :func:`run_specs` returns them).
-    """
-
-    def __init__(self, message: str, records=()):
-        super().__init__(message)
-        self.records = list(records)
-
+    batch ran): one line saying what failed and where every run's record is."""
 
 
 def study_target(name: str) -> str:
@@ -570,7 +562,7 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
     if failures:
         raise OutputError(one_line(f"not every result was written: {failures[0]}"
                                    + (f" (and {len(failures) - 1} more failures, above)"
-                                      if len(failures) > 1 else "")), records)
+                                      if len(failures) > 1 else "")))
     return records
 
 

@@ -6,19 +6,19 @@
     python -m benchmarks.check --suite ci --baseline benchmarks/baselines/ci.json --update
 
 Each run of the suite is matched to the baseline's run of the same identity
-(:func:`benchmarks.records.identity`: problem, integrator, setting, horizon). Every
-metric is compared in its own direction with its own
-:class:`benchmarks.records.Tolerance` (the rule the report's history shares): lower is
+(:func:`benchmarks.records.identity`: problem, integrator, setting, horizon) and compared
+by :mod:`benchmarks.gate` (the rule the report's history shares). Every metric is
+compared in its own direction with its own :class:`~benchmarks.gate.Tolerance`: lower is
 better for constraint residuals, energy and invariant errors and final errors; higher is
 better for ``scd`` (significant correct digits). A metric regresses when it is worse
 than the baseline by more than its relative factor *and* lies above its absolute floor
-(values at or below the floor are round-off, which may differ between machines). The drift classes
-of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`) regress when
-they grow faster than before (bounded, linear, quadratic, superquadratic, exponential). A
-run that finished in the baseline and now does not (``failed``, ``error``, ``timeout``)
-is a regression, as is a failed run that now fails earlier. A baseline run missing from
-the results is a regression too (the gate must not pass by comparing less); a run new in
-the suite is reported, not gated (``--update`` records the suite as it is).
+(values at or below the floor are round-off, which may differ between machines). The
+drift classes of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`)
+regress when they grow faster than before (bounded, linear, quadratic, superquadratic,
+exponential). A run that finished in the baseline and now does not (``failed``,
+``error``, ``timeout``) is a regression, as is a failed run that now fails earlier. A
+baseline run missing from the results is a regression too (the gate must not pass by
+comparing less); a run new in the suite is reported, not gated (``--update`` records the suite as it is).
 
 Runs of sensitive (chaotic) problems, ``System.sensitive``, are compared and reported but
 never fail the gate: their final states depend on round-off.
@@ -42,138 +42,20 @@ import math
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from benchmarks import suites
 from benchmarks.batch import run_specs
-from benchmarks.drift import SEVERITY, kind_of
 from benchmarks.executors import load_plugins
 from benchmarks.files import replace_file
-from benchmarks.records import (TOLERANCES, InputError, compare_metric, identity, one_line,
-                                provenance)
+from benchmarks.gate import TOLERANCES, Finding, compare, entry
+from benchmarks.records import InputError, identity, one_line, provenance
 
 EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
 BASELINE_FORMAT = 1
-#: Statuses of runs that completed their horizon.
-FINISHED = ("ok",)
-
-
-#: The recorded drift classes the gate compares (runs.csv columns).
-GROWTH = ("pos_growth", "energy_growth")
-
-
-def metrics_of(row: dict) -> dict[str, float | None]:
-    """The accuracy metrics of a ``runs.csv`` row (None where not measured)."""
-    out = {}
-    for name in TOLERANCES:
-        value = row.get(name)
-        out[name] = None if value is None or (isinstance(value, float) and math.isnan(value)) \
-            else float(value)
-    try:
-        invariants = json.loads(row.get("invariant_errors") or "{}")
-    except (TypeError, ValueError):
-        invariants = {}
-    out.update({f"inv:{k}": (None if v is None else float(v)) for k, v in invariants.items()})
-    return out
-
-
-@dataclass(frozen=True)
-class Finding:
-    """One difference between the baseline and the current run."""
-
-    kind: str  # "regression", "improvement", "note"
-    run: str
-    metric: str
-    baseline: str
-    current: str
-    change: str
-    gating: bool
-
-
-def _fmt(x) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, str):
-        return x
-    return f"{x:.3g}"
-
-
-def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:
-    """``("regression" | "improvement" | None, change text)`` for one drift class."""
-    if base not in SEVERITY or cur not in SEVERITY or base == cur:
-        return None, ""
-    kind = "regression" if SEVERITY.index(cur) > SEVERITY.index(base) else "improvement"
-    return kind, f"{base} -> {cur}"
-
-
-def compare(baseline: dict, current: dict) -> list[Finding]:
-    """Every regression, improvement and note between two ``{run id: entry}`` maps.
-
-    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``.
-    """
-    findings: list[Finding] = []
-    for rid, cur in current.items():
-        gating = not cur.get("sensitive", False)
-        base = baseline.get(rid)
-        if base is None:
-            findings.append(Finding("note", rid, "run", "-", cur["status"],
-                                    "not in the baseline", False))
-            continue
-        bs, cs = base["status"], cur["status"]
-        if bs in FINISHED and cs not in FINISHED:
-            findings.append(Finding("regression", rid, "status", bs, cs,
-                                    "newly fails: " + one_line(cur.get("message") or "")[:200],
-                                    gating))
-            continue
-        if bs not in FINISHED and cs in FINISHED:
-            findings.append(Finding("improvement", rid, "status", bs, cs, "now finishes", gating))
-            continue
-        if bs not in FINISHED:
-            if cs != bs:
-                findings.append(Finding("regression", rid, "status", bs, cs,
-                                        one_line(cur.get("message") or "")[:200], gating))
-            elif (base.get("fail_step") is not None and cur.get("fail_step") is not None
-                  and cur["fail_step"] != base["fail_step"]):
-                kind = "regression" if cur["fail_step"] < base["fail_step"] else "improvement"
-                findings.append(Finding(kind, rid, "fail_step", str(base["fail_step"]),
-                                        str(cur["fail_step"]), "fails at another step", gating))
-            continue
-        names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
-        for metric in names:
-            b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
-            if metric not in TOLERANCES and not metric.startswith("inv:"):
-                continue
-            kind, change = compare_metric(metric, b, c)
-            if kind is not None:
-                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change, gating))
-        for series in GROWTH:
-            b, c = base.get("growth", {}).get(series), cur.get("growth", {}).get(series)
-            kind, change = compare_growth(b, c)
-            if kind is not None:
-                findings.append(Finding(kind, rid, series, b, c, change, gating))
-    for rid in baseline:
-        if rid not in current:
-            findings.append(Finding("regression", rid, "run", baseline[rid]["status"], "-",
-                                    "in the baseline, not run", True))
-    return findings
-
-
 def entries(records) -> dict[str, dict]:
-    """Baseline entries of a suite's records, by run identity."""
-    out = {}
-    for record in records:
-        row = record.row
-        fail_step = row.get("fail_step")
-        out[identity(row)] = {
-            "status": row["status"],
-            "message": row.get("message") or "",
-            "fail_step": int(fail_step) if fail_step is not None else None,
-            "sensitive": bool(row.get("sensitive")),
-            "metrics": metrics_of(row),
-            "growth": {series: kind_of(row.get(series)) for series in GROWTH},
-        }
-    return out
+    """Baseline entries of a suite's records, by run identity (:func:`benchmarks.gate.entry`)."""
+    return {identity(record.row): entry(record.row) for record in records}
 
 
 def table(findings: list[Finding]) -> str:

@@ -45,10 +45,11 @@ from pathlib import Path
 import integrators
 import problems
 from benchmarks import suites
-from benchmarks.batch import STUDIES, expand, run_specs
+from benchmarks.batch import expand, run_specs
 from benchmarks.executors import load_plugins
 from benchmarks.records import InputError, RunSpec, one_line
 from reports import build as build_report
+from studies import STUDIES
 
 #: Exit status of bad input and of an interrupted invocation.
 EXIT_INPUT, EXIT_INTERRUPTED = 2, 130

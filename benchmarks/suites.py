@@ -52,10 +52,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import problems
-from benchmarks.batch import STUDIES, expand
+from benchmarks.batch import expand
 from benchmarks.cluster import parse as parse_cluster
 from benchmarks.records import InputError, RunSpec
 from problems.spec import SpecError, split_spec, suggest
+from studies import STUDIES
 
 SUITE_DIR = Path(__file__).parent / "suites"
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from benchmarks import records
+from benchmarks import gate, records
 from benchmarks.drift import fit_order
 
 #: Factor within which two methods count as tied for the smallest drift.
@@ -280,7 +280,6 @@ class Pick:
     """
 
     row: pd.Series | None
-    cost: str
     winner: bool = False
     ties: list[str] = field(default_factory=list)
     text: str = "none"
@@ -297,7 +296,7 @@ def cheapest(candidates: pd.DataFrame, cost: str) -> Pick:
     """
     cands = candidates[candidates[cost].notna()]
     if cands.empty:
-        return Pick(None, cost, text="none")
+        return Pick(None, text="none")
     cands = cands.sort_values(cost, kind="stable")
     best = cands.iloc[0]
     others = cands.iloc[1:]
@@ -307,17 +306,17 @@ def cheapest(candidates: pd.DataFrame, cost: str) -> Pick:
         text = f"{name}: {fmt(best[cost])} {LABELS[cost]}"
         if ties:
             text += f"; tied: {', '.join(ties)}"
-        return Pick(best, cost, not ties, ties, text)
+        return Pick(best, not ties, ties, text)
     t = timing(best)
     ties = [r["integrator"] for _, r in others.iterrows() if timing(r).low <= t.high]
     unmeasured = not t.measured or any(not timing(r).measured for _, r in others.iterrows())
     text = f"{name}: {t.text()} s"
     if unmeasured and len(cands) > 1:
         text += "; fastest, but no winner: a timing spread was not measured (one solve)"
-        return Pick(best, cost, False, ties, text)
+        return Pick(best, False, ties, text)
     if ties:
         text += f"; no winner: within the timing spread of {', '.join(ties)}"
-    return Pick(best, cost, not ties, ties, text)
+    return Pick(best, not ties, ties, text)
 
 
 # --------------------------------------------------------------------------- accuracy
@@ -538,7 +537,7 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
 # --------------------------------------------------------------------------- history
 
 #: The metrics the drift gate compares, in the gate's own terms.
-GATE_METRICS = tuple(records.TOLERANCES)
+GATE_METRICS = tuple(gate.TOLERANCES)
 
 
 @dataclass
@@ -549,9 +548,10 @@ class History:
     ``runs``), oldest first; ``values``: metric -> frame of run identity x commit label
     (the latest run of each identity within each commit; NaN where not measured);
     ``regressions``: ``(identity, metric, from label, to label, change)`` between
-    consecutive commits that measured the run, by the gate's rule
-    (:func:`benchmarks.records.compare_metric`; a finished run that no longer finishes
-    counts too). Runs of chaotic problems are shown but, as in the gate, never regress.
+    consecutive commits that measured the run: exactly the gating regressions of
+    :func:`benchmarks.gate.compare` (metrics, declared invariants, drift classes, a run
+    that no longer finishes or fails earlier). Runs of chaotic problems are shown but, as
+    in the gate, never regress.
     """
 
     commits: pd.DataFrame
@@ -585,17 +585,8 @@ def history(runs: pd.DataFrame) -> History:
     for ident in identities:
         seen = [(c, rows[c][ident]) for c in labels if ident in rows[c]]
         for (c0, r0), (c1, r1) in zip(seen, seen[1:]):
-            if r1.get("sensitive") == 1:
-                continue
-            if is_ok(r0) and not is_ok(r1):
-                regressions.append((ident, "status", c0, c1, f"ok -> {r1['status']}"))
-                continue
-            if not (is_ok(r0) and is_ok(r1)):
-                continue
-            for m in GATE_METRICS:
-                b, c = _num(r0.get(m)), _num(r1.get(m))
-                kind, change = records.compare_metric(
-                    m, None if math.isnan(b) else b, None if math.isnan(c) else c)
-                if kind == "regression":
-                    regressions.append((ident, m, c0, c1, change))
+            regressions += [(ident, f.metric, c0, c1, f.change or f"{f.baseline} -> {f.current}")
+                            for f in gate.compare({ident: gate.entry(r0)},
+                                                  {ident: gate.entry(r1)})
+                            if f.kind == "regression" and f.gating]
     return History(commits, values, regressions)

@@ -18,6 +18,7 @@ from matplotlib import rc_context
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 
+from benchmarks import gate
 from reports.analysis import LABELS, Convergence, History, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
@@ -29,10 +30,10 @@ MARKERS = "os^Dv<>pP*Xh"
 LEGEND_ROW = 0.2
 
 
-def palette(families: dict[str, str]) -> dict[str, tuple]:
+def palette(families: dict[str, list[str]]) -> dict[str, tuple]:
     """A fixed colour and marker per integrator, the same in every figure.
 
-    ``families`` maps each integrator to its family (the integrator's ``family`` trait):
+    ``families`` maps each family (the integrators' ``family`` trait) to its integrators:
     one hue per family, so a reader sees the families at a glance, and within a family
     one shade (from full to pale) and one marker per integrator.
     """
@@ -40,13 +41,10 @@ def palette(families: dict[str, str]) -> dict[str, tuple]:
     from matplotlib.colors import to_rgb
 
     hues = colormaps["tab10"]
-    members: dict[str, list[str]] = {}
-    for key in sorted(families):
-        members.setdefault(families[key], []).append(key)
     colors = {}
-    for i, family in enumerate(sorted(members)):
+    for i, family in enumerate(sorted(families)):
         base = np.array(to_rgb(hues(i % hues.N)))
-        keys = members[family]
+        keys = sorted(families[family])
         for j, key in enumerate(keys):
             pale = 0.55 * j / max(len(keys) - 1, 1)
             colors[key] = (tuple(base + (1.0 - base) * pale), MARKERS[j % len(MARKERS)])
@@ -252,7 +250,7 @@ def history(hist: History) -> str:
         fig, axes = _figure(rows, cols, 3.3 * cols, 2.6 * rows)
         for ax, metric in zip(axes.flat, metrics):
             frame = hist.values[metric]
-            lower = metric != "scd"
+            lower = gate.tolerance(metric).direction == "lower"
             values = frame.to_numpy(dtype=float)
             for line in values:
                 if np.isfinite(line).any():

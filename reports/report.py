@@ -75,18 +75,15 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
         return load_series(db_path, run_id)
 
     current = latest(runs)
-    colors = figures.palette(_families(runs))
+    members = _families(runs)
+    colors = figures.palette(members)
 
     doc = Document(TITLE)
     doc.add(Para(_scope(runs, current)))
-    families = _families(runs)
-    if families:
-        members: dict[str, list[str]] = {}
-        for key, family in sorted(families.items()):
-            members.setdefault(family, []).append(key)
+    if members:
         doc.add(Para("Families (one hue each in the figures, a shade and marker per "
                      "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
-                                                 for f, k in sorted(members.items())) + "."))
+                                                 for f, k in members.items()) + "."))
     _headline(doc, current)
     _history(doc, runs)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
@@ -106,14 +103,18 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     return [md_path, html_path, *written]
 
 
-def _families(runs: pd.DataFrame) -> dict[str, str]:
-    """Integrator -> its family, as the run recorded it (the integrator's ``family``
-    trait); runs stored before families were recorded count as a family of their own."""
+def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
+    """Family -> its integrators, both sorted, as the runs recorded them (the integrators'
+    ``family`` trait); runs stored before families were recorded count as a family of
+    their own."""
     if runs.empty:
         return {}
     family = runs.get("family", pd.Series(index=runs.index, dtype=object))
     named = family.where(family.notna() & (family.astype(str) != ""), runs["integrator"])
-    return dict(zip(runs["integrator"], named.astype(str)))
+    members: dict[str, list[str]] = {}
+    for key, name in sorted(set(zip(runs["integrator"], named.astype(str)))):
+        members.setdefault(name, []).append(key)
+    return dict(sorted(members.items()))
 
 
 def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:

@@ -75,7 +75,7 @@ def section(doc: Document, data: dict) -> None:
         f"{data.get('machine', {}).get('cpus', '?')} cores (other processes share them). "
         f"C yardstick: {s.get('c_yardstick', 'not recorded')}."))
     families = list(dict.fromkeys(p["family"] for p in points if p["family"] != C_NAME))
-    colors = figures.palette({key: key for key in families})
+    colors = figures.palette({key: [key] for key in families})
     panels = []
     for problem in s["problems"]:
         lines = []

@@ -106,9 +106,10 @@ def run(out: Path) -> dict[str, pd.DataFrame]:
     for key, h in SETTINGS:
         case, traj = solve(key, h)
         g = traj.windows.get("pos", np.array([]))
+        max_g = float(np.max(g)) if len(g) else math.nan
         rows.append(dict(integrator=key, h=h, status=traj.status, steps=traj.counts["n_steps"],
-                         reached=traj.t_final, max_g=float(np.max(g)) if len(g) else math.nan,
-                         vs_bound=("within" if g.size and np.max(g) <= BOUND else "above")
+                         reached=traj.t_final, max_g=max_g,
+                         vs_bound=("within" if max_g <= BOUND else "above")
                          if traj.status == "ok" else traj.status, message=traj.message))
         series.append((f"{key} h={h:g}", traj.windows.get("t", np.array([])), g,
                        traj.status != "ok"))

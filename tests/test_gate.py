@@ -11,7 +11,7 @@ import pytest
 
 from benchmarks import check
 from benchmarks.executors import PLUGIN_ENV
-from benchmarks.check import compare, compare_metric
+from benchmarks.gate import compare, compare_metric
 from integrators.lobatto import LobattoIIIAIIIB
 
 

@@ -286,7 +286,7 @@ def test_figure_colours_follow_the_integrators_families():
 
     from reports.figures import palette
 
-    colors = palette({"lobatto3ab2": "SPARK", "lobatto3ab3": "SPARK", "rattle": "RATTLE"})
+    colors = palette({"SPARK": ["lobatto3ab2", "lobatto3ab3"], "RATTLE": ["rattle"]})
     hue = {k: rgb_to_hsv(c)[0] for k, (c, _) in colors.items()}
     assert hue["lobatto3ab2"] == pytest.approx(hue["lobatto3ab3"], abs=1e-9)
     assert abs(hue["rattle"] - hue["lobatto3ab2"]) > 0.05

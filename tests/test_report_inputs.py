@@ -3,13 +3,17 @@ must mark exactly what the gate fails) and a suite's accuracy targets."""
 
 import pytest
 
-from benchmarks import check, records, suites
+from benchmarks import check, gate, suites
 
 
 def test_the_history_and_the_gate_share_one_regression_rule():
-    """One rule, defined once: the gate takes the report's (which must not import JAX)."""
-    assert check.compare_metric is records.compare_metric
-    assert check.TOLERANCES is records.TOLERANCES
+    """One rule, defined once in benchmarks.gate: the gate's command imports it, and the
+    report's history uses it (the report must not import the gate's command, which pulls
+    in JAX)."""
+    from reports import analysis
+
+    assert check.compare is gate.compare and check.TOLERANCES is gate.TOLERANCES
+    assert analysis.gate is gate
 
 
 def test_a_suite_sets_its_accuracy_targets(tmp_path):

@@ -181,3 +181,20 @@ def test_history_marks_what_the_gate_would_fail():
     # gated; d: no longer finishes.
     assert found == {("a", "max_pos_residual"), ("a", "max_vel_residual"), ("d", "status")}
     assert hist.values["max_pos_residual"].loc["p / a / h=0.1 / t_end=1", "bbbb"] == 1e-8
+
+
+def test_history_marks_drift_classes_invariants_and_earlier_failures():
+    # What the gate fails beyond the five metrics: a drift class that grows faster, a
+    # declared invariant 100x worse, and a failed run that now fails earlier.
+    def two(commit, started, growth, invariant, fail_step):
+        return [run("e", h=0.1, pos=1e-12, commit=commit, session_started=started, dirty=0,
+                    pos_growth=growth),
+                run("f", h=0.1, pos=1e-12, commit=commit, session_started=started, dirty=0,
+                    invariant_errors=f'{{"momentum": {invariant}}}'),
+                run("g", h=0.1, status="failed", commit=commit, session_started=started,
+                    dirty=0, fail_step=fail_step)]
+
+    hist = history(frame(*two("aaaa", 1.0, "bounded (round-off)", 1e-10, 50),
+                         *two("bbbb", 2.0, "linear (p = 1.00)", 1e-8, 20)))
+    found = {(i.split(" / ")[1], m) for i, m, _, _, _ in hist.regressions}
+    assert found == {("e", "pos_growth"), ("f", "inv:momentum"), ("g", "fail_step")}

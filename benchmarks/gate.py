@@ -1,0 +1,209 @@
+"""The drift gate's rule: when is a run worse than the same run before?
+
+One rule, used by ``python -m benchmarks.check`` against its baseline and by the report's
+history across commits (so the report never needs the gate's heavy imports). Each run is
+reduced to an :func:`entry` (status, failing step, sensitivity, metrics, drift classes),
+and :func:`compare` lists every regression, improvement and note between two maps of
+entries. Every metric is compared in its own direction with its own :class:`Tolerance`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+from benchmarks.drift import SEVERITY, kind_of
+from benchmarks.records import one_line
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How one metric is compared.
+
+    ``lower`` metrics regress when ``current > factor * baseline`` and ``current > floor``;
+    ``higher`` metrics (digits, ``scd``) regress when ``min(current, floor)`` falls below
+    ``min(baseline, floor) - log10(factor)``, the floor there being the digit count beyond
+    which differences are round-off.
+    """
+
+    direction: str  # "lower" or "higher" is better
+    factor: float
+    floor: float
+
+
+#: Per-metric tolerances. The factor of 4 (0.6 digits for ``scd``) leaves room for what a
+#: change of round-off alone does: residuals accumulate it as a random walk, and an adaptive
+#: method's step sequence jumps when a rejected step turns accepted, which was seen to move
+#: IDA's final error on Andrews' mechanism by a factor of 2 after a refactoring of the
+#: mechanics; the regressions the gate is for move metrics by orders of magnitude. The
+#: floors sit a few hundred ulps above the round-off of O(1) quantities, low enough that a
+#: Newton iteration stopped 1e6 times too early shows in the residuals.
+TOLERANCES: dict[str, Tolerance] = {
+    "max_pos_residual": Tolerance("lower", 4.0, 1e-13),
+    "max_vel_residual": Tolerance("lower", 4.0, 1e-13),
+    "rel_energy_error": Tolerance("lower", 4.0, 1e-13),
+    "final_state_error": Tolerance("lower", 4.0, 1e-12),
+    "scd": Tolerance("higher", 4.0, 11.0),
+}
+#: Tolerance of every declared invariant's error (``inv:NAME``).
+INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
+
+
+def tolerance(metric: str) -> Tolerance:
+    """The :class:`Tolerance` of a gated metric (``inv:NAME`` for a declared invariant)."""
+    return INVARIANT_TOLERANCE if metric.startswith("inv:") else TOLERANCES[metric]
+
+
+def _ratio(base: float, cur: float) -> str:
+    return "from 0" if base == 0 else f"x{cur / base:.3g}"
+
+
+def compare_metric(metric: str, base: float | None,
+                   cur: float | None) -> tuple[str | None, str]:
+    """``("regression" | "improvement" | None, change text)`` for one metric, ``None``
+    meaning not measured."""
+    tol = tolerance(metric)
+    if base is None and cur is None:
+        return None, ""
+    if cur is None:
+        return "regression", "no longer measured"
+    if base is None:
+        return None, "newly measured"
+    if not math.isfinite(cur) and not (tol.direction == "higher" and cur > 0):
+        return ("regression", "not finite") if math.isfinite(base) else (None, "")
+    if tol.direction == "lower":
+        if cur > tol.factor * base and cur > tol.floor:
+            return "regression", _ratio(base, cur)
+        if base > tol.factor * cur and base > tol.floor:
+            return "improvement", _ratio(base, cur)
+        return None, ""
+    b, c = min(base, tol.floor), min(cur, tol.floor)
+    digits = math.log10(tol.factor)
+    if c < b - digits:
+        return "regression", f"{c - b:+.2f} digits"
+    if c > b + digits:
+        return "improvement", f"{c - b:+.2f} digits"
+    return None, ""
+
+
+#: Statuses of runs that completed their horizon.
+FINISHED = ("ok",)
+
+
+#: The recorded drift classes the gate compares (runs.csv columns).
+GROWTH = ("pos_growth", "energy_growth")
+
+
+def _given(value):
+    """``value``, or None where it is missing (None, or NaN as pandas reads a blank)."""
+    return None if value is None or (isinstance(value, float) and math.isnan(value)) \
+        else value
+
+
+def metrics_of(row: dict) -> dict[str, float | None]:
+    """The accuracy metrics of a ``runs.csv`` row (None where not measured)."""
+    out = {}
+    for name in TOLERANCES:
+        value = _given(row.get(name))
+        out[name] = None if value is None else float(value)
+    try:
+        invariants = json.loads(_given(row.get("invariant_errors")) or "{}")
+    except (TypeError, ValueError):
+        invariants = {}
+    out.update({f"inv:{k}": (None if v is None else float(v)) for k, v in invariants.items()})
+    return out
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One difference between the baseline and the current run."""
+
+    kind: str  # "regression", "improvement", "note"
+    run: str
+    metric: str
+    baseline: str
+    current: str
+    change: str
+    gating: bool
+
+
+def _fmt(x) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, str):
+        return x
+    return f"{x:.3g}"
+
+
+def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:
+    """``("regression" | "improvement" | None, change text)`` for one drift class."""
+    if base not in SEVERITY or cur not in SEVERITY or base == cur:
+        return None, ""
+    kind = "regression" if SEVERITY.index(cur) > SEVERITY.index(base) else "improvement"
+    return kind, f"{base} -> {cur}"
+
+
+def compare(baseline: dict, current: dict) -> list[Finding]:
+    """Every regression, improvement and note between two ``{run id: entry}`` maps.
+
+    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``.
+    """
+    findings: list[Finding] = []
+    for rid, cur in current.items():
+        gating = not cur.get("sensitive", False)
+        base = baseline.get(rid)
+        if base is None:
+            findings.append(Finding("note", rid, "run", "-", cur["status"],
+                                    "not in the baseline", False))
+            continue
+        bs, cs = base["status"], cur["status"]
+        if bs in FINISHED and cs not in FINISHED:
+            findings.append(Finding("regression", rid, "status", bs, cs,
+                                    "newly fails: " + one_line(cur.get("message") or "")[:200],
+                                    gating))
+            continue
+        if bs not in FINISHED and cs in FINISHED:
+            findings.append(Finding("improvement", rid, "status", bs, cs, "now finishes", gating))
+            continue
+        if bs not in FINISHED:
+            if cs != bs:
+                findings.append(Finding("regression", rid, "status", bs, cs,
+                                        one_line(cur.get("message") or "")[:200], gating))
+            elif (base.get("fail_step") is not None and cur.get("fail_step") is not None
+                  and cur["fail_step"] != base["fail_step"]):
+                kind = "regression" if cur["fail_step"] < base["fail_step"] else "improvement"
+                findings.append(Finding(kind, rid, "fail_step", str(base["fail_step"]),
+                                        str(cur["fail_step"]), "fails at another step", gating))
+            continue
+        names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
+        for metric in names:
+            b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
+            if metric not in TOLERANCES and not metric.startswith("inv:"):
+                continue
+            kind, change = compare_metric(metric, b, c)
+            if kind is not None:
+                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change, gating))
+        for series in GROWTH:
+            b, c = base.get("growth", {}).get(series), cur.get("growth", {}).get(series)
+            kind, change = compare_growth(b, c)
+            if kind is not None:
+                findings.append(Finding(kind, rid, series, b, c, change, gating))
+    for rid in baseline:
+        if rid not in current:
+            findings.append(Finding("regression", rid, "run", baseline[rid]["status"], "-",
+                                    "in the baseline, not run", True))
+    return findings
+
+
+def entry(row) -> dict:
+    """What the gate compares of a run's row (a ``runs.csv`` dict or a stored row)."""
+    fail_step = _given(row.get("fail_step"))
+    return {
+        "status": row["status"],
+        "message": _given(row.get("message")) or "",
+        "fail_step": None if fail_step is None else int(fail_step),
+        "sensitive": bool(_given(row.get("sensitive"))),
+        "metrics": metrics_of(row),
+        "growth": {series: kind_of(_given(row.get(series))) for series in GROWTH},
+    }
