@@ -1,19 +1,23 @@
 """The Dask engine: a batch's runs on the workers of a ``distributed`` cluster.
 
-``Cluster("local:N")`` starts a :class:`distributed.LocalCluster` of ``N`` worker processes
-on this machine; ``Cluster("tcp://HOST:PORT")`` connects to a running scheduler, whose
-workers (``dask worker tcp://HOST:PORT --nthreads 1``) may be on any machine that has this
-code and its dependencies at the same version (a worker that runs another code version
-gives ``error`` records that say so, never results under the wrong run key).
+``Cluster("local:N")`` starts a :class:`distributed.LocalCluster` of ``N`` workers on this
+machine, as threads of this process (each hands its runs to a process of its own, below, so
+worker processes would add only start-up time and compete for the cores: with them the
+``quick`` suite took 3 to 5 s longer on two cores); ``Cluster("tcp://HOST:PORT")`` connects
+to a running scheduler, whose workers (``dask worker tcp://HOST:PORT --nthreads 1``) may be
+on any machine that has this code and its dependencies at the same version (a worker that
+runs another code version gives ``error`` records that say so, never results under the
+wrong run key).
 
 The semantics are those of the local pool (:mod:`benchmarks.pool`), because each Dask
-worker process runs a pool of one worker process of its own (:class:`_Host`) and every
-task is carried out there:
+worker runs a pool of one worker process of its own (:class:`_Host`) and every task is
+carried out there:
 
 - **isolation**: a run past its time limit is killed there (``SIGKILL``) and recorded
   ``timeout``; a run that kills its process is recorded ``error`` with the signal; a Dask
-  worker that dies or leaves the cluster (``SIGKILL``, a lost machine) costs only the run
-  it held, recorded ``error`` with the reason, and its nanny starts a fresh one;
+  worker of a ``tcp://`` cluster that dies or leaves it (``SIGKILL``, a lost machine) costs
+  only the run it held, recorded ``error`` with the reason, and its nanny, if it has one,
+  starts a fresh one;
 - **honest wall times**: one run at a time per Dask worker, its process pinned to a core
   that the worker claims on its machine (a lock file per core, so workers on one machine
   take different cores while there are enough);
@@ -57,15 +61,12 @@ POLL = 0.25
 # The worker side: one pool process per Dask worker
 # ---------------------------------------------------------------------------------------
 
-_claims: list = []  # the open lock files of this process's claimed cores
+def claim_core() -> tuple[int, bool, object]:
+    """A core for the caller, whether it is its own, and the claim (an open lock file, or
+    None; the claim lasts until it is closed or the process ends).
 
-
-def claim_core() -> tuple[int, bool]:
-    """A core for this process, and whether it is its own.
-
-    The first usable core whose lock file (in the temporary folder) no other process holds;
-    the lock lasts as long as this process. When every core is taken, a core shared with
-    another worker (the timing note says so).
+    The first usable core whose lock file (in the temporary folder) nobody holds. When
+    every core is taken, a core shared with another worker (the timing note says so).
     """
     cpus = usable_cpus()
     for cpu in cpus:
@@ -75,14 +76,13 @@ def claim_core() -> tuple[int, bool]:
         except OSError:
             handle.close()
             continue
-        _claims.append(handle)
-        return cpu, True
-    return cpus[os.getpid() % len(cpus)], False
+        return cpu, True, handle
+    return cpus[os.getpid() % len(cpus)], False, None
 
 
 class _Host:
-    """The pool of one Dask worker process: a thread of its own drives a :class:`Pool` of
-    one worker process, pinned to the claimed core.
+    """The pool of one Dask worker: a thread of its own drives a :class:`Pool` of one
+    worker process, pinned to the claimed core.
 
     One thread spawns every pool process: Linux ends a child with its parent *thread*
     (``PR_SET_PDEATHSIG``), so that thread must live as long as the Dask worker.
@@ -93,17 +93,34 @@ class _Host:
         # pool process it slows compilation by about 10 %, and set-up times would differ
         # from the local pool's.
         os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
-        self.cpu, self.own = claim_core()
+        self.cpu, self.own, self.claim = claim_core()
         self.version = provenance()["code_version"]
         self.requests: queue.Queue = queue.Queue()
-        threading.Thread(target=self._serve, name="driftbench-host", daemon=True).start()
+        self.pool: Pool | None = None
+        self.thread = threading.Thread(target=self._serve, name="driftbench-host",
+                                       daemon=True)
+        self.thread.start()
 
     def _serve(self) -> None:
         with Pool(1, cpus=[self.cpu]) as pool:
+            self.pool = pool
             pool.start()
-            while True:
-                task, answer = self.requests.get()
+            while (request := self.requests.get()) is not None:
+                task, answer = request
                 pool.run([task], lambda t, outcome: answer.put(outcome))
+
+    def stop(self) -> None:
+        """Stop the pool process, killing a run in flight (whose result nobody awaits any
+        more); :meth:`join` waits for it."""
+        self.requests.put(None)
+        if self.pool is not None:
+            self.pool.interrupt()
+
+    def join(self) -> None:
+        """Wait until the pool process has stopped; give the core back."""
+        self.thread.join()
+        if self.claim is not None:
+            self.claim.close()
 
     def perform(self, task: Task) -> Outcome:
         answer: queue.Queue = queue.Queue(maxsize=1)
@@ -115,26 +132,34 @@ class _Host:
                 "version": self.version}
 
 
-_host: _Host | None = None
-_host_lock = threading.Lock()
+# One host per Dask worker, by its address: a ``local:N`` cluster runs its workers as
+# threads of one process.
+_hosts: dict[str, _Host] = {}
+_hosts_lock = threading.Lock()
 
 
-def _start_host() -> dict:
-    """Start this Dask worker's pool (once); say where it runs."""
-    global _host
-    with _host_lock:
-        if _host is None:
-            _host = _Host()
-        return _host.describe()
+def _host(address: str) -> _Host:
+    """The host of the Dask worker at ``address``, started at the first call."""
+    with _hosts_lock:
+        if address not in _hosts:
+            _hosts[address] = _Host()
+        return _hosts[address]
+
+
+def _start_host(dask_worker: distributed.Worker) -> dict:
+    """Start this Dask worker's pool (once); say where it runs (``Client.run`` passes the
+    worker)."""
+    return _host(dask_worker.address).describe()
 
 
 def _perform(task: Task, version: str) -> Outcome:
     """Carry out ``task`` in this Dask worker's pool, if it runs code version ``version``."""
-    where = _start_host()
-    if where["version"] != version:
+    host = _host(distributed.get_worker().address)
+    if host.version != version:
+        where = host.describe()
         return Outcome("fail", message=f"the Dask worker on {where['host']} runs code version "
                                        f"{where['version']}, this batch {version}")
-    return _host.perform(task)
+    return host.perform(task)
 
 
 # ---------------------------------------------------------------------------------------
@@ -179,10 +204,13 @@ class Cluster:
     def _connect(self) -> None:
         try:
             if self.workers is not None:
-                # One thread per worker: a worker runs one run at a time, in its pool.
+                # The workers are threads of this process, talking in-process: each runs
+                # its runs in a pool process of its own, which gives the isolation, so
+                # worker processes would only add start-up and compete for the cores.
+                # One thread per worker: a worker runs one run at a time.
                 self.local = distributed.LocalCluster(
-                    n_workers=self.workers, threads_per_worker=1, processes=True,
-                    host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                    n_workers=self.workers, threads_per_worker=1, processes=False,
+                    dashboard_address="127.0.0.1:0",
                     silence_logs=logging.ERROR)
                 self.client = distributed.Client(self.local, timeout=CONNECT_LIMIT)
             else:
@@ -272,6 +300,13 @@ class Cluster:
             with contextlib.suppress(Exception):  # closing what may already be gone
                 self.client.close()
         if self.local is not None:
+            # Its workers are threads of this process: their hosts stop with it.
+            with _hosts_lock:
+                hosts = [_hosts.pop(a) for a in self.hosts if a in _hosts]
+            for host in hosts:  # all at once: each takes a while to stop
+                host.stop()
+            for host in hosts:
+                host.join()
             with contextlib.suppress(Exception):
                 self.local.close()
         self.client = self.local = None

@@ -186,7 +186,11 @@ def serve(fd: int, parent_pid: int, cpu: int) -> None:
         except (EOFError, OSError):
             return
         if message[0] == "stop":
-            return
+            # Everything is sent: skip the interpreter's teardown (JAX's takes most of a
+            # second), which the parent would wait for.
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(0)
         kind, task_id, payload = message
         try:
             result = perform(kind, payload, lambda text: conn.send(("phase", task_id, text)))
@@ -234,6 +238,7 @@ class Pool:
                       for i in range(jobs)]
         self.start_failures = 0
         self.start_error = ""
+        self.interrupted = False
 
     def note(self, repeats: int) -> str:
         """How this pool keeps wall times honest, in a few sentences for the report."""
@@ -352,6 +357,11 @@ class Pool:
         """Run ``tasks``; call ``report(task, outcome)`` for each as it ends, in any order."""
         queue = deque(tasks)
         while queue or any(s.task is not None for s in self.slots):
+            if self.interrupted:
+                while queue:
+                    report(queue.popleft(), Outcome("fail", message="the pool was stopped"))
+                if not any(s.task is not None for s in self.slots):
+                    return
             if self.start_failures >= MAX_START_FAILURES:
                 why = self.start_error or "the worker process ended before it was ready"
                 while queue:
@@ -395,13 +405,27 @@ class Pool:
                     self.start_failures += 1
                     self.start_error = f"not ready after {STARTUP_LIMIT:g} s"
 
+    def interrupt(self) -> None:
+        """Kill the workers that are running a task; :meth:`run` reports those tasks as
+        died, and the tasks not yet started as failed. Safe to call from another thread:
+        it sets a flag and sends signals."""
+        self.interrupted = True
+        for slot in self.slots:
+            proc = slot.proc
+            if slot.task is not None and proc is not None:
+                proc.kill()
+
     def close(self) -> None:
-        """Stop every worker: idle ones are asked to stop, busy or starting ones are killed."""
+        """Stop every worker: idle ones are asked to stop, busy or starting ones are killed;
+        all are told before any is waited for, since each takes a while to exit."""
+        idle = {}
         for slot in self.slots:
             if slot.proc is None:
                 continue
-            idle = slot.ready and slot.task is None
-            if idle:
+            idle[id(slot)] = slot.ready and slot.task is None
+            if idle[id(slot)]:
                 with contextlib.suppress(OSError, ValueError):
                     slot.conn.send(("stop",))
-            self._retire(slot, kill=not idle)
+        for slot in self.slots:
+            if slot.proc is not None:
+                self._retire(slot, kill=not idle[id(slot)])

@@ -45,6 +45,14 @@ def plugins(monkeypatch):
     load_plugins()
 
 
+def children() -> set[int]:
+    """The live child processes of this process (from /proc)."""
+    pids = set()
+    for task in Path("/proc/self/task").iterdir():
+        pids |= {int(p) for p in (task / "children").read_text().split()}
+    return pids
+
+
 def accuracy(record) -> dict:
     return {c: record.row[c] for c in ACCURACY_COLUMNS}
 
@@ -57,8 +65,11 @@ def integrity(db: Path) -> str:
 def test_a_local_cluster_isolates_faults_and_matches_the_local_pool(tmp_path):
     specs = [HEALTHY[0], RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
              RunSpec("pendulum", "test-kill", 0.1, t_end=1.0), HEALTHY[1]]
+    before = children()
     records = run_specs(specs, tmp_path / "dask", cluster="local:2", timeout=300.0,
                         load=[SLIDER], log=None)
+    # The workers were threads here; their pool processes stopped with the cluster.
+    assert children() == before
     status = {r.row["integrator"]: r.row["status"] for r in records}
     assert status == {"rattle": "ok", "test-hang": "timeout", "test-kill": "error",
                       "lobatto3ab2": "ok"}
