@@ -49,9 +49,9 @@ from benchmarks.batch import run_specs
 from benchmarks.executors import load_plugins
 from benchmarks.files import replace_file
 from benchmarks.gate import TOLERANCES, Finding, compare, entry
-from benchmarks.records import InputError, identity, one_line, provenance
+from benchmarks.records import EXIT_INPUT, CommandParser, InputError, identity, one_line, provenance
 
-EXIT_OK, EXIT_REGRESSION, EXIT_INPUT = 0, 1, 2
+EXIT_OK, EXIT_REGRESSION = 0, 1
 BASELINE_FORMAT = 1
 def entries(records) -> dict[str, dict]:
     """Baseline entries of a suite's records, by run identity (:func:`benchmarks.gate.entry`)."""
@@ -143,7 +143,7 @@ def write_baseline(path: Path, suite: str, current: dict) -> None:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.check",
+    p = CommandParser(prog="python -m benchmarks.check",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--suite", default="ci", help="suite name or path (default: ci)")
     p.add_argument("--baseline", type=Path, required=True, help="baseline JSON file")

@@ -21,6 +21,7 @@ This module imports neither JAX nor an integrator nor a problem.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import hashlib
 import json
@@ -82,6 +83,18 @@ class InputError(ValueError):
 def one_line(text) -> str:
     """``text`` with its line breaks folded, for one-line error messages."""
     return " ".join(str(text).split())
+
+
+#: Exit status of every command on bad input.
+EXIT_INPUT = 2
+
+
+class CommandParser(argparse.ArgumentParser):
+    """The command lines' argument parser: an error is one line (no usage block) that
+    points to ``--help``, with exit status :data:`EXIT_INPUT`."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def number(x) -> str:

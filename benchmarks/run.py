@@ -47,23 +47,17 @@ import problems
 from benchmarks import suites
 from benchmarks.batch import expand, run_specs
 from benchmarks.executors import load_plugins
-from benchmarks.records import InputError, RunSpec, one_line
+from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
 from reports import build as build_report
 from studies import STUDIES
 
-#: Exit status of bad input and of an interrupted invocation.
-EXIT_INPUT, EXIT_INTERRUPTED = 2, 130
+#: Exit status of an interrupted invocation.
+EXIT_INTERRUPTED = 130
 
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with its errors on one line (no usage block), exit status 2."""
-
-    def error(self, message):
-        self.exit(EXIT_INPUT, f"error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
+    p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
     p.add_argument("--problems", nargs="+", metavar="SPEC", help="problems, e.g. pendulum sps-ring:N=12")
     p.add_argument("--integrators", nargs="+", metavar="SPEC", help="integrator keys, e.g. rattle lobatto3ab3")

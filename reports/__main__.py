@@ -13,20 +13,13 @@ import math
 import sys
 from pathlib import Path
 
-from benchmarks.records import one_line
+from benchmarks.records import EXIT_INPUT, CommandParser, one_line
 from benchmarks.store import STORE_NAME, StoreError
 from reports import build
 from reports.analysis import COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, PRECISION_AXES
 from reports.scaling import ScalingError
 
-EXIT_INPUT = 2
 
-
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line (no usage block) and exit 2."""
-
-    def error(self, message):
-        self.exit(EXIT_INPUT, f"error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def _target(text: str) -> float:
@@ -40,7 +33,7 @@ def _target(text: str) -> float:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m reports",
+    p = CommandParser(prog="python -m reports",
                 description="Rebuild report.md and report.html from a results store.")
     p.add_argument("--db", type=Path, help=f"results store (default: OUT/{STORE_NAME})")
     p.add_argument("--out", type=Path, default=Path("results"),

@@ -23,12 +23,12 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import time
 
 from benchmarks import pool
+from benchmarks.records import CommandParser
 
 #: The goal for the share of the solve spent in our callbacks.
 SHARE_GOAL = 0.8
@@ -56,7 +56,8 @@ def measure(spec: str, t_end: float, rounds: int):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="python -m benchmarks.perf.ida_overhead",
+                           description=__doc__.splitlines()[0])
     parser.add_argument("--t-end", type=float, default=100.0, help="horizon (s)")
     parser.add_argument("--rtol", type=float, default=1e-8, help="rtol (atol = rtol)")
     parser.add_argument("--rounds", type=int, default=3, help="timed solves of each key")

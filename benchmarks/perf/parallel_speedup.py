@@ -18,7 +18,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -28,7 +27,7 @@ from pathlib import Path
 
 from benchmarks import suites
 from benchmarks.batch import run_specs
-from benchmarks.records import ACCURACY_COLUMNS, provenance
+from benchmarks.records import ACCURACY_COLUMNS, CommandParser, provenance
 
 
 def default_suite() -> str:
@@ -66,7 +65,7 @@ def measure(suite_name: str, engines: list[tuple[int | None, str | None]], out: 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.perf.parallel_speedup",
+    p = CommandParser(prog="python -m benchmarks.perf.parallel_speedup",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--suite", default=default_suite(), help="suite to run (default: quick)")
     p.add_argument("--jobs", nargs="*", type=int,

@@ -101,6 +101,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.records import EXIT_INPUT, CommandParser
+
 ROOT = Path(__file__).resolve().parents[2]
 YARDSTICK = Path(__file__).resolve().parent / "yardstick" / "rattle_chain.c"
 
@@ -132,7 +134,6 @@ AGREE_Q, AGREE_V = 1e-12, 1e-10
 POLL = 0.05
 C_NAME = "C"
 STATUSES = ("ok", "failed", "timeout", "out of memory", "error", "not run")
-EXIT_INPUT = 2
 
 #: The bars of the scaling issue.
 RATIO_BAR, RATIO_SIZES = 10.0, (1024, 16384)
@@ -591,15 +592,9 @@ def write(out: Path, data: dict, points: list[Point]) -> list[Path]:
 
 # --------------------------------------------------------------------------- driver
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with its errors on one line (no usage block), exit status 2."""
-
-    def error(self, message):
-        self.exit(EXIT_INPUT, f"error: {' '.join(message.split())} (see {self.prog} --help)\n")
-
 
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m benchmarks.perf.scaling", description=__doc__.split("\n")[0])
+    p = CommandParser(prog="python -m benchmarks.perf.scaling", description=__doc__.split("\n")[0])
     p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
                    help="problems (default: chain sps-ring)")
     p.add_argument("--n", nargs="+", type=int, default=list(SIZES),

@@ -16,7 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import os
@@ -28,6 +27,7 @@ from collections import Counter
 from pathlib import Path
 
 from benchmarks import suites
+from benchmarks.records import CommandParser
 
 
 def measure(name: str, budget: float | None, out: Path, jobs: int | None = None) -> dict:
@@ -51,7 +51,7 @@ def measure(name: str, budget: float | None, out: Path, jobs: int | None = None)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.perf.suite_time",
+    p = CommandParser(prog="python -m benchmarks.perf.suite_time",
                                 description=__doc__.split("\n")[0])
     p.add_argument("suites", nargs="+", help="suite names or paths")
     p.add_argument("--jobs", type=int, help="passed on to benchmarks.run (default: its own)")

@@ -44,7 +44,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -59,6 +58,7 @@ import numpy as np
 
 import integrators
 import problems
+from benchmarks.records import CommandParser
 from integrators.base import Grid
 from integrators.loop import kernel_environment
 
@@ -283,7 +283,8 @@ def memory(h: float, counts: list[int]) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = CommandParser(prog="python -m benchmarks.perf.throughput",
+                           description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=float, default=1e6, help="steps per timed run")
     parser.add_argument("--h", type=float, default=1e-3, help="step size")
     parser.add_argument("--rounds", type=int, default=5, help="alternating rounds")
