@@ -24,15 +24,20 @@ from reports.svg import clean
 MAX_STEM = 80
 
 
+def slug(text: str, empty: str) -> str:
+    """``text`` in lower-case letters, digits and single ``-``; ``empty`` if nothing is left."""
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or empty
+
+
 def file_stem(name: str) -> str:
     """A file stem for ``name``: lower-case letters, digits and ``-`` only, at most
     :data:`MAX_STEM` characters. A name that had to change gets a short hash of its full
     text, so different names (``pendulum:L=1`` and ``pendulum:L-1``) never share a file."""
-    slug = re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "figure"
-    if slug == name and len(slug) <= MAX_STEM:
-        return slug
+    stem = slug(name, "figure")
+    if stem == name and len(stem) <= MAX_STEM:
+        return stem
     digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:10]
-    return f"{slug[:MAX_STEM - len(digest) - 1].rstrip('-')}-{digest}"
+    return f"{stem[:MAX_STEM - len(digest) - 1].rstrip('-')}-{digest}"
 
 
 @dataclass
@@ -79,7 +84,7 @@ class Document:
     def heading(self, level: int, text: str, collapsible: bool = False) -> Heading:
         """Append a heading with an anchor unique in the document; ``collapsible`` folds a
         section (level 2) and everything up to the next section in the HTML page."""
-        base = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "section"
+        base = slug(text, "section")
         taken = {b.anchor for b in self.blocks if isinstance(b, Heading)}
         anchor, k = base, 2
         while anchor in taken:
