@@ -127,18 +127,17 @@ def _line(x: np.ndarray, y: np.ndarray) -> tuple[tuple[float, float], float]:
     return (float(coef[0]), float(coef[1])), residual
 
 
-def fit_order(h, err, floor: float = 0.0) -> tuple[float, int]:
+def fit_order(h, err, floor: float = 0.0) -> tuple[float, np.ndarray]:
     """Observed convergence order: slope of ``log err`` against ``log h``.
 
     Points at or below ``floor`` (round-off, where the error no longer follows ``h^p``)
-    and non-finite ones are left out. Returns ``(order, points used)``; ``nan`` with
-    fewer than two distinct step sizes.
+    and non-finite ones are left out. Returns ``(order, mask of the points used)``; the
+    order is ``nan`` with fewer than two distinct step sizes.
     """
     h = np.asarray(h, dtype=np.float64)
     err = np.asarray(err, dtype=np.float64)
     keep = np.isfinite(h) & np.isfinite(err) & (h > 0) & (err > floor) & (err > 0)
-    h, err = h[keep], err[keep]
-    if len(np.unique(h)) < 2:
-        return math.nan, int(len(h))
-    (slope, _), _ = _line(np.log(h), np.log(err))
-    return float(slope), int(len(h))
+    if len(np.unique(h[keep])) < 2:
+        return math.nan, keep
+    (slope, _), _ = _line(np.log(h[keep]), np.log(err[keep]))
+    return float(slope), keep

@@ -482,8 +482,7 @@ def fit(integrator: str, h, err, nominal: float, plateau: float,
     :data:`FIT_MARGIN` times the reference ``floor``."""
     h, err = np.asarray(h, dtype=float), np.asarray(err, dtype=float)
     threshold = max(plateau, FIT_MARGIN * floor)
-    fitted = np.isfinite(err) & (err > threshold) & (h > 0)
-    order, _ = fit_order(h[fitted], err[fitted])
+    order, fitted = fit_order(h, err, threshold)
     return Convergence(integrator, h, err, order, fitted, nominal, threshold, floor)
 
 
