@@ -208,6 +208,11 @@ def reference_floor(row) -> float:
     return 0.0 if math.isnan(floor) else floor
 
 
+def largest_floor(runs: pd.DataFrame) -> float:
+    """The largest reference floor among ``runs``; 0 where none is recorded."""
+    return max((reference_floor(r) for _, r in runs.iterrows()), default=0.0)
+
+
 def at_floor(row) -> bool:
     """Whether a run's final error is at or below its reference's accuracy (floor > 0)."""
     err, floor = _num(row.get("final_state_error")), reference_floor(row)
@@ -349,6 +354,14 @@ def per_integrator(runs: pd.DataFrame, cost: str) -> pd.DataFrame:
     return runs.loc[runs.groupby("integrator")[cost].idxmin()]
 
 
+def reach(ok: pd.DataFrame, column: str, level: float):
+    """The cheapest finished runs of ``ok`` reaching ``level`` in ``column``, by wall time
+    and by evaluations, and the integrators that reach it."""
+    hits = reaching(ok, column, level)
+    return (cheapest(per_integrator(hits, "wall_s"), "wall_s"),
+            cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals"), set(hits["integrator"]))
+
+
 def cost_winner(runs: pd.DataFrame) -> Winner:
     """Cheapest method at matched accuracy, by wall time (with its spread) and by
     evaluations.
@@ -367,10 +380,8 @@ def cost_winner(runs: pd.DataFrame) -> Winner:
     best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
         .groupby("integrator")["_acc"].min()
     target = float(np.median(best.values))
-    hits = reaching(ok, metric, target)
-    by_wall = cheapest(per_integrator(hits, "wall_s"), "wall_s")
-    by_evals = cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals")
-    missed = sorted(set(best.index) - set(hits["integrator"]))
+    by_wall, by_evals, reached = reach(ok, metric, target)
+    missed = sorted(set(best.index) - reached)
     verdict = (f"{LABELS[metric]} ≤ {fmt(target)} at t_end = {fmt(ok['t_end'].iloc[0])}: "
                f"by wall time {by_wall.text}; by evaluations {by_evals.text}")
     if missed:
@@ -412,8 +423,7 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
             continue
         if column == "final_state_error" and is_sensitive(runs):
             continue
-        floor = max((verdict_floor(r) for _, r in ok.iterrows()), default=0.0) \
-            if column == "final_state_error" else 0.0
+        floor = max(largest_floor(ok), ORDER_FLOOR) if column == "final_state_error" else 0.0
         best = {}
         for _, r in ok.iterrows():
             value = accuracy(r, column)
@@ -425,12 +435,10 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
                 out.append(Target(column, level, None, None, [],
                                   f"below the {what} ({fmt(floor)}): cannot be checked"))
                 continue
-            hits = reaching(ok, column, level)
+            by_wall, by_evals, reached = reach(ok, column, level)
             missed = [f"{k} (best {fmt(best[k])})" if k in best else f"{k} (no finished run)"
-                      for k in ran if k not in set(hits["integrator"])]
-            out.append(Target(column, level, cheapest(per_integrator(hits, "wall_s"), "wall_s"),
-                              cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals"),
-                              missed))
+                      for k in ran if k not in reached]
+            out.append(Target(column, level, by_wall, by_evals, missed))
     return out
 
 
@@ -504,7 +512,7 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
     floor = 0.0
     if fixed["final_state_error"].notna().any():
         fixed["_err"] = fixed["final_state_error"].astype(float)
-        floor = max(reference_floor(r) for _, r in fixed.iterrows())
+        floor = largest_floor(fixed)
         basis, plateau = "final error against the reference", ORDER_FLOOR
         if floor > 0:
             basis += (f" (itself accurate to {fmt(floor)}: only errors above "

@@ -28,7 +28,7 @@ from reports import figures, scaling as scaling_section
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
                               PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
                               convergence, cost_winner, drift_winner, energy_winner,
-                              floor_text, fmt, history, is_sensitive, latest, reference_floor,
+                              floor_text, fmt, history, is_sensitive, largest_floor, latest,
                               representative, setting, targets as target_rows, text, timing)
 from reports.document import Bullets, Document, Figure, Para, Table, to_html, to_markdown
 from reports.svg import SvgError, clean
@@ -249,8 +249,7 @@ def _summary(doc: Document, runs: pd.DataFrame) -> None:
 
 def _floor_note(runs: pd.DataFrame) -> str:
     """What the problem's reference is accurate to, where the runs recorded it."""
-    floors = [reference_floor(r) for _, r in runs.iterrows() if r["status"] == "ok"]
-    floor = max(floors, default=0.0)
+    floor = largest_floor(runs[runs["status"] == "ok"])
     if floor <= 0:
         return ""
     n = sum(at_floor(r) for _, r in runs.iterrows())
@@ -302,7 +301,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
     n_ok = int((sweep["status"] == "ok").sum())
     horizon = fmt(sweep["t_end"].iloc[0]) if not sweep.empty else "none"
     x, y = wp
-    floor = max((reference_floor(r) for _, r in sweep.iterrows()), default=0.0)
+    floor = largest_floor(sweep)
     doc.add(Figure(f"{problem}-work-precision",
                    figures.work_precision(sweep, colors, f"{problem}, t_end = {horizon}", x, y,
                                           floor),
