@@ -16,6 +16,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from benchmarks.files import replace_file
 from reports.svg import clean
 
 
@@ -133,7 +134,7 @@ def to_markdown(doc: Document, out_dir: Path,
         elif isinstance(b, Figure):
             stem = file_stem(b.name)
             path = out_dir / figure_dir / f"{stem}.svg"
-            path.write_text(clean(b.svg, "", keep_style=b.trusted))
+            replace_file(path, clean(b.svg, "", keep_style=b.trusted))
             written.append(path)
             lines += [f"![{_md_cell(b.name)}]({figure_dir}/{stem}.svg)", ""]
             if b.caption:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from benchmarks.files import replace_file
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
 from reports import figures, scaling as scaling_section
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
@@ -98,8 +99,8 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
 
     md, written = to_markdown(doc, out_dir)
     md_path, html_path = out_dir / "report.md", out_dir / "report.html"
-    md_path.write_text(md)
-    html_path.write_text(to_html(doc, [built]))
+    replace_file(md_path, md)
+    replace_file(html_path, to_html(doc, [built]))
     return [md_path, html_path, *written]
 
 

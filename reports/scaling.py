@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from benchmarks.files import replace_file
 from reports import figures
 from reports.analysis import fmt
 from reports.document import Document, Figure, Para, Table, to_html, to_markdown
@@ -126,6 +127,6 @@ def write(data: dict, out: Path) -> list[Path]:
     section(doc, data)
     md, written = to_markdown(doc, out)
     md_path, html_path = out / "scaling.md", out / "scaling.html"
-    md_path.write_text(md)
-    html_path.write_text(to_html(doc))
+    replace_file(md_path, md)
+    replace_file(html_path, to_html(doc))
     return [md_path, html_path, *written]
