@@ -129,13 +129,14 @@ def test_perturbed_lattice_keeps_constraints_energy_and_angular_momentum():
     # h = 0.005, not 0.01: with the seed's radii at N = 16 the constraint ellipse of
     # (R, r) is thin (axes 1.9 and 0.19), and every half period the rings swing round its
     # tip, where the zig-zag flips through flat and the bar forces peak at about 400
-    # times their initial value for about 0.1 s. At h = 0.01 RATTLE's position step has no
-    # Newton solution in such a passage at t = 19.69 (measured; h = 0.005 passes it).
-    # The horizon stops at t = 12: at t = 12.18 the rings pass a configuration where
-    # G M^-1 G^T is numerically singular, and RATTLE's simplified Newton on the
+    # times their initial value for about 0.1 s, and by t = 11 the perturbation has grown
+    # into a crumpled lattice. At h = 0.01 RATTLE's position step from t = 11.22 has no
+    # solution (the least-squares minimum of |g| over lambda is 5.6e-5; see the module
+    # docstring). The horizon stops at t = 12: at t = 12.18 the rings pass a configuration
+    # where G M^-1 G^T is numerically singular, and RATTLE's simplified Newton on the
     # structured path (SuperLU, a least-squares solve for the singular S) diverges there:
-    # failed at step 2436, t = 12.175 -> 12.18 (measured); the dense path passes it but
-    # takes about 30 minutes.
+    # failed at step 2436, t = 12.175 -> 12.18 (measured); the dense path's full Newton
+    # passes it and runs to t = 20 in 274 s (measured), too long for this suite.
     case, traj = solve("sps-lattice:N=16,K=8,perturb=0.01", "rattle", t_end=12.0, h=0.005)
     assert case.mech.n == 768 and case.mech.m == 597
     w = traj.windows
