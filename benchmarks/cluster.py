@@ -229,7 +229,15 @@ class Cluster:
             raise InputError(one_line(f"cluster {where}: cannot start or reach it, or it has "
                                       f"no worker: {self._failure}"))
         return (f"Dask cluster {self.client.scheduler.address} with {len(self.hosts)} "
-                f"workers; dashboard: {self.client.dashboard_link}")
+                f"workers; dashboard: {self.dashboard()}")
+
+    def dashboard(self) -> str:
+        """The dashboard's address. A local cluster's serves on 127.0.0.1 only, where
+        ``Client.dashboard_link`` would name the machine's outward address."""
+        if self.local is None:
+            return self.client.dashboard_link
+        port = self.client.scheduler_info()["services"].get("dashboard")
+        return f"http://127.0.0.1:{port}/status" if port else "none"
 
     def note(self, repeats: int) -> str:
         hosts = sorted({h["host"] for h in self.hosts.values()})
