@@ -49,10 +49,13 @@ from benchmarks.batch import run_specs
 from benchmarks.executors import load_plugins
 from benchmarks.files import replace_file
 from benchmarks.gate import TOLERANCES, Finding, compare, entry
-from benchmarks.records import EXIT_INPUT, CommandParser, InputError, identity, one_line, provenance
+from benchmarks.records import (EXIT_INPUT, CommandParser, InputError, identity, one_line,
+                                provenance)
 
 EXIT_OK, EXIT_REGRESSION = 0, 1
 BASELINE_FORMAT = 1
+
+
 def entries(records) -> dict[str, dict]:
     """Baseline entries of a suite's records, by run identity (:func:`benchmarks.gate.entry`)."""
     return {identity(record.row): entry(record.row) for record in records}
@@ -144,7 +147,7 @@ def write_baseline(path: Path, suite: str, current: dict) -> None:
 
 def parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m benchmarks.check",
-                                description=__doc__.split("\n")[0])
+                      description=__doc__.split("\n")[0])
     p.add_argument("--suite", default="ci", help="suite name or path (default: ci)")
     p.add_argument("--baseline", type=Path, required=True, help="baseline JSON file")
     p.add_argument("--update", action="store_true",

@@ -3,7 +3,7 @@
 ``Cluster("local:N")`` starts a :class:`distributed.LocalCluster` of ``N`` workers on this
 machine, as threads of this process (each hands its runs to a process of its own, below, so
 worker processes would add only start-up time and compete for the cores: with them the
-``quick`` suite took 3 to 5 s longer on two cores); ``Cluster("tcp://HOST:PORT")`` connects
+``quick`` suite took 2 to 4 s longer on two cores); ``Cluster("tcp://HOST:PORT")`` connects
 to a running scheduler, whose workers (``dask worker tcp://HOST:PORT --nthreads 1``) may be
 on any machine that has this code and its dependencies at the same version (a worker that
 runs another code version gives ``error`` records that say so, never results under the
@@ -111,13 +111,10 @@ class _Host:
 
     def stop(self) -> None:
         """Stop the pool process, killing a run in flight (whose result nobody awaits any
-        more); :meth:`join` waits for it."""
+        more), and give the core back."""
         self.requests.put(None)
         if self.pool is not None:
             self.pool.interrupt()
-
-    def join(self) -> None:
-        """Wait until the pool process has stopped; give the core back."""
         self.thread.join()
         if self.claim is not None:
             self.claim.close()
@@ -311,10 +308,8 @@ class Cluster:
             # Its workers are threads of this process: their hosts stop with it.
             with _hosts_lock:
                 hosts = [_hosts.pop(a) for a in self.hosts if a in _hosts]
-            for host in hosts:  # all at once: each takes a while to stop
-                host.stop()
             for host in hosts:
-                host.join()
+                host.stop()
             with contextlib.suppress(Exception):
                 self.local.close()
         self.client = self.local = None

@@ -416,16 +416,12 @@ class Pool:
                 proc.kill()
 
     def close(self) -> None:
-        """Stop every worker: idle ones are asked to stop, busy or starting ones are killed;
-        all are told before any is waited for, since each takes a while to exit."""
-        idle = {}
+        """Stop every worker: idle ones are asked to stop, busy or starting ones are killed."""
         for slot in self.slots:
             if slot.proc is None:
                 continue
-            idle[id(slot)] = slot.ready and slot.task is None
-            if idle[id(slot)]:
+            idle = slot.ready and slot.task is None
+            if idle:
                 with contextlib.suppress(OSError, ValueError):
                     slot.conn.send(("stop",))
-        for slot in self.slots:
-            if slot.proc is not None:
-                self._retire(slot, kill=not idle[id(slot)])
+            self._retire(slot, kill=not idle)

@@ -55,7 +55,6 @@ from studies import STUDIES
 EXIT_INTERRUPTED = 130
 
 
-
 def parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
