@@ -10,6 +10,7 @@ states. Failure is data: a run that cannot go on ends with a status and a messag
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import asdict, dataclass, field
 from typing import Callable, ClassVar
@@ -18,8 +19,22 @@ import numpy as np
 
 from problems.case import Case
 
-#: Run status values (design notes, section 6).
-OK, FAILED, TIMEOUT, ERROR, SKIPPED = "ok", "failed", "timeout", "error", "skipped"
+class Status(enum.StrEnum):
+    """How a run ended (design notes, section 6); the values are what runs.csv and the store
+    hold, and a member compares equal to its value."""
+
+    OK = "ok"
+    #: A numerical failure; the message says what and where.
+    FAILED = "failed"
+    #: Killed at its time limit.
+    TIMEOUT = "timeout"
+    #: A defect or bad input; the message says which.
+    ERROR = "error"
+    #: Not run; the message says why.
+    SKIPPED = "skipped"
+
+
+OK, FAILED, TIMEOUT, ERROR, SKIPPED = Status
 
 #: Work counters every run reports (zero where a method has no such work).
 COUNTERS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves")
