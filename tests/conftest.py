@@ -1,11 +1,20 @@
-"""What every test shares: float64 JAX, set once before any test module builds an array,
-and the ``slow`` marker's meaning.
+"""What every test shares: float64 JAX, set once before any test module builds an array;
+the persistent compilation cache; and the ``slow`` marker's meaning.
 
 ``make test`` runs everything. ``pytest -m "not slow"`` is the quick subset: it leaves out
 the long verification runs (long horizons, large problems, whole studies) and the tests
 that start process pools, clusters or whole suites in subprocesses.
+
+The tests compile through the same persistent cache as the suite
+(:mod:`benchmarks.compilation`: ``$DRIFTBENCH_COMPILE_CACHE``, else the per-user folder),
+so a second ``make test`` and the test files after the first reuse what was compiled. No
+test depends on its state: an entry read back is the executable that would be compiled.
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+from benchmarks import compilation  # noqa: E402  (after float64 is set)
+
+compilation.enable()

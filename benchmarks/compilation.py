@@ -1,0 +1,186 @@
+"""Compile once per machine: JAX's persistent compilation cache, set up in one place.
+
+Every process that compiles (the command line, the pool's workers, the processes a Dask
+cluster's workers drive, the perf benchmarks, the tests) calls :func:`enable` before its
+first compilation. The cache lives in a per-user folder by default,
+``$XDG_CACHE_HOME/driftbench/jax`` (``~/.cache/driftbench/jax`` where ``XDG_CACHE_HOME`` is
+unset); the variable :data:`ENV` or the command line's ``--compile-cache`` names another
+folder, or ``off`` to compile everything afresh.
+
+What keys an entry
+------------------
+JAX keys each executable by the hash of the lowered program, the jaxlib and XLA backend
+versions, the compile options, the devices and every flag in ``XLA_FLAGS`` (so the
+one-kernel flag of :mod:`integrators.loop` and the workers' thread flag cannot reuse an
+executable built without them). On top of that the entries of each pair of jax and jaxlib
+versions go to a folder of their own (:func:`folder`), so an upgrade starts afresh and
+leaves the old folder to :func:`clear`. Executables that call back into Python (the SuperLU
+path) are never written by JAX: their set-up compiles every time.
+
+Bound and clearing
+------------------
+The folder is kept under :data:`MAX_BYTES` (JAX evicts the least recently used entries, under
+a file lock that the processes sharing it take). ``python -m benchmarks.compilation`` prints
+where it is and how large; ``--clear`` empties it.
+
+Honest timing
+-------------
+A run's set-up time is measured as before, cache or not; :class:`Watch` counts the
+compilations of a set-up and where they came from, and the run records it
+(``setup_cache``: ``warm`` when every compilation was read from the cache, ``cold`` when
+none was, ``partial``, ``memory`` when nothing needed compiling because this process had
+compiled it already, ``off`` without a cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import threading
+from pathlib import Path
+
+import jax
+import jaxlib
+
+#: Environment variable naming the cache folder, or ``off``.
+ENV = "DRIFTBENCH_COMPILE_CACHE"
+#: Most bytes the cache folder holds before the least recently used entries go.
+MAX_BYTES = 2 * 1024**3
+#: Compilations quicker than this are not written. Zero: the small helpers (a start, a
+#: projection, a measure) take 10 to 100 ms each to compile and a millisecond to read
+#: back, and a set-up that compiles even one of them is no longer served by the cache alone.
+MIN_COMPILE_S = 0.0
+
+_lock = threading.Lock()
+#: Executables read from the cache, and backend compilations (each one, read or compiled).
+_counts = {"/jax/compilation_cache/cache_hits": 0, "/jax/core/compile/backend_compile_duration": 0}
+_enabled: list[Path | None] = []
+
+
+def root(setting: str | None = None) -> Path | None:
+    """The cache's base folder: ``setting``, else :data:`ENV`, else the per-user default;
+    ``None`` for ``off``."""
+    value = setting if setting is not None else os.environ.get(ENV, "")
+    if value.strip().lower() == "off":
+        return None
+    if value.strip():
+        return Path(value).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "driftbench" / "jax"
+
+
+def folder(base: Path) -> Path:
+    """The folder for this process's jax and jaxlib versions under ``base``."""
+    return base / f"jax-{jax.__version__}-jaxlib-{jaxlib.__version__}"
+
+
+def _listen(event: str, *args, **kwargs) -> None:
+    if event in _counts:
+        with _lock:
+            _counts[event] += 1
+
+
+def enable(setting: str | None = None) -> Path | None:
+    """Use the persistent cache in this process and in the processes it starts.
+
+    ``setting`` is a folder or ``off`` (default: :data:`ENV`, else the per-user folder). It
+    is written to :data:`ENV`, so that child processes (pool workers) use the same folder.
+    Call it before the first compilation; a later call with the same setting does nothing.
+    Returns the folder in use, or ``None`` when off.
+    """
+    base = root(setting)
+    where = None if base is None else folder(base)
+    if _enabled and _enabled[0] == where:
+        return where
+    os.environ[ENV] = "off" if base is None else str(base)
+    if not _enabled:
+        jax.monitoring.register_event_listener(_listen)
+        jax.monitoring.register_event_duration_secs_listener(_listen)
+    if where is not None:
+        where.mkdir(parents=True, exist_ok=True)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    jax.config.update("jax_enable_compilation_cache", where is not None)
+    jax.config.update("jax_compilation_cache_dir", None if where is None else str(where))
+    # JAX decides once per process whether it uses a cache, at the first compilation: a
+    # process that compiled before this call must be told to decide again.
+    from jax._src import compilation_cache
+    compilation_cache.reset_cache()
+    _enabled[:] = [where]
+    return where
+
+
+def active() -> Path | None:
+    """The folder this process's compilations go to (``None``: off or not enabled)."""
+    return _enabled[0] if _enabled else None
+
+
+class Watch:
+    """Counts the compilations inside a ``with`` block and where they came from.
+
+    Attributes, after the block: ``compiled`` (backend compilations, the cached ones
+    excluded), ``hits`` (executables read from the cache) and :attr:`source`.
+    """
+
+    def __enter__(self) -> "Watch":
+        with _lock:
+            self._start = tuple(_counts.values())
+        return self
+
+    def __exit__(self, *exc) -> None:
+        with _lock:
+            self.hits, backend = (now - then for now, then in zip(_counts.values(), self._start))
+        self.compiled = backend - self.hits
+
+    @property
+    def source(self) -> str:
+        """``off``, ``memory``, ``warm``, ``cold`` or ``partial`` (module docstring)."""
+        if active() is None:
+            return "off"
+        if self.hits == 0 and self.compiled == 0:
+            return "memory"
+        if self.compiled == 0:
+            return "warm"
+        return "cold" if self.hits == 0 else "partial"
+
+
+def size(where: Path) -> tuple[int, int]:
+    """Number of entries and bytes in a cache folder."""
+    files = [p for p in where.rglob("*") if p.is_file() and not p.name.startswith(".")]
+    return sum(p.name.endswith("-cache") for p in files), sum(p.stat().st_size for p in files)
+
+
+def clear(base: Path) -> None:
+    """Remove the cache folder ``base`` with every version's entries."""
+    shutil.rmtree(base, ignore_errors=True)
+
+
+def main(argv=None) -> int:
+    from benchmarks.records import CommandParser
+
+    parser = CommandParser(prog="python -m benchmarks.compilation",
+                           description="Where the persistent compilation cache is, its size; "
+                                       "--clear empties it.")
+    parser.add_argument("--compile-cache", metavar="DIR", default=None,
+                        help=f"the cache folder (default: ${ENV}, else the per-user folder)")
+    parser.add_argument("--clear", action="store_true", help="remove every entry")
+    args = parser.parse_args(argv)
+    base = root(args.compile_cache)
+    if base is None:
+        print("the compilation cache is off")
+        return 0
+    if args.clear:
+        clear(base)
+        print(f"cleared {base}")
+        return 0
+    entries, nbytes = size(base) if base.exists() else (0, 0)
+    print(f"{base}: {entries} entries, {nbytes / 1e6:.1f} MB (bound {MAX_BYTES / 1e9:.1f} GB "
+          f"per jax version); this version's folder: {folder(base).name}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
