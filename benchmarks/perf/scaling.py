@@ -125,7 +125,6 @@ FIT_FROM = 1024
 #: apart. Gravity off by 0.1 % moves q by 5e-9 and v by 1e-5 over 100 steps of 1e-5.
 AGREE_Q, AGREE_V = 1e-12, 1e-10
 C_NAME = "C"
-STATUSES = ("ok", "failed", "timeout", "out of memory", "error", "not run")
 
 #: The bars of the scaling issue.
 RATIO_BAR, RATIO_SIZES = 10.0, (1024, 16384)
