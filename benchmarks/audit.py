@@ -4,7 +4,8 @@
 initial values, the way the integrators will (under JAX, with autodiff), and refuses what
 would make every run meaningless: a wrong shape, a value that is not finite, a mass matrix
 that is not symmetric positive definite, a function that JAX cannot trace. The message
-names the function, the file and line where it is defined, and what is wrong.
+names the function, the file and line where it is defined (for a constant mass, those of
+the problem's factory), and what is wrong.
 
 :func:`explain` turns any exception met while building or running user code into one line
 with the user's ``file:line`` and, for JAX's tracer errors, what they mean.
@@ -12,7 +13,6 @@ with the user's ``file:line`` and, for JAX's tracer errors, what they mean.
 
 from __future__ import annotations
 
-import inspect
 import traceback
 
 import jax
@@ -21,6 +21,7 @@ import numpy as np
 
 import problems
 from benchmarks.records import one_line
+from problems.source import located
 
 #: JAX's errors of a function that uses a traced value as a concrete one, and what to do.
 TRACER_ERRORS = (jax.errors.ConcretizationTypeError, jax.errors.TracerBoolConversionError,
@@ -44,37 +45,33 @@ def explain(exc: BaseException) -> str:
         shown = traceback.TracebackException.from_exception(exc)
         shown.__notes__ = None
         detail = list(shown.format_exception_only())[-1]
-    return one_line(f"{where}: {detail}" if where else detail)
-
-
-def _defined(func) -> str:
-    """``file:line`` where ``func`` is defined, or ``""``."""
-    try:
-        return f"{inspect.getsourcefile(func)}:{inspect.getsourcelines(func)[1]}"
-    except (TypeError, OSError):
-        return ""
+    return one_line(located(detail, where))
 
 
 class AuditError(ValueError):
     """A user function that returns something the integrators cannot use."""
 
 
+def _refuse(case, message: str, func=None) -> AuditError:
+    """The error ``message`` about ``case``, led by where ``func`` is defined, else where
+    the problem's factory is."""
+    return AuditError(located(message, func, problems.REGISTRY.get(case.name)))
+
+
 def _check(case, label: str, func, call, shape: tuple[int, ...]) -> np.ndarray:
     """Evaluate ``call()`` (which calls ``func``) and check its shape and finiteness."""
-    where = _defined(func)
-    prefix = f"{where}: " if where else ""
     what = f"{label} of problem {case.name!r}"
     try:
         value = np.asarray(call(), dtype=np.float64)
     except AuditError:
         raise
     except Exception as exc:  # the user's function raised: say where and what
-        raise AuditError(f"{prefix}{what} raised {explain(exc)}") from None
+        raise _refuse(case, f"{what} raised {explain(exc)}", func) from None
     if value.shape != shape:
-        raise AuditError(f"{prefix}{what} returns shape {value.shape}, not {shape} "
-                         f"(System n = {case.system.n}, m = {case.system.m})")
+        raise _refuse(case, f"{what} returns shape {value.shape}, not {shape} "
+                            f"(System n = {case.system.n}, m = {case.system.m})", func)
     if not np.all(np.isfinite(value)):
-        raise AuditError(f"{prefix}{what} is not finite at the initial values")
+        raise _refuse(case, f"{what} is not finite at the initial values", func)
     return value
 
 
@@ -97,15 +94,14 @@ def audit(case) -> None:
         M = np.asarray(s.mass, dtype=np.float64)
         M = np.diag(M) if M.ndim == 1 else M
         if M.shape != (n, n) or not np.all(np.isfinite(M)):
-            raise AuditError(f"mass of problem {case.name!r} has shape {M.shape}, not ({n}, {n})"
-                             f" or ({n},), or is not finite")
-    where = _defined(s.mass) if callable(s.mass) else ""
-    prefix = f"{where}: " if where else ""
+            raise _refuse(case, f"mass of problem {case.name!r} has shape {M.shape}, not "
+                                f"({n}, {n}) or ({n},), or is not finite")
+    mass = s.mass if callable(s.mass) else None
     if np.max(np.abs(M - M.T)) > SYMMETRY_TOL * max(np.max(np.abs(M)), 1.0):
-        raise AuditError(f"{prefix}mass of problem {case.name!r} is not symmetric at q0")
+        raise _refuse(case, f"mass of problem {case.name!r} is not symmetric at q0", mass)
     if np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) <= 0.0:
-        raise AuditError(f"{prefix}mass of problem {case.name!r} is not positive definite at q0"
-                         f" (smallest eigenvalue {np.min(np.linalg.eigvalsh(M)):.3g})")
+        raise _refuse(case, f"mass of problem {case.name!r} is not positive definite at q0 "
+                            f"(smallest eigenvalue {np.min(np.linalg.eigvalsh(M)):.3g})", mass)
     if s.potential is not None:
         _check(case, "potential(q)", s.potential, lambda: s.potential(q), ())
         _check(case, "grad potential (autodiff)", s.potential,

@@ -10,6 +10,7 @@ import dataclasses
 import importlib
 
 from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
+from problems.source import located
 from problems.spec import SpecError, parse_value, split_spec, suggest
 
 #: key -> ("module:Class", preset options)
@@ -57,8 +58,8 @@ def make(spec: str, **overrides) -> Integrator:
     options = dict(REGISTRY[key][1])
     for name, text in raw.items():
         if name not in fields:
-            raise SpecError(f"integrator {key!r} has no option {name!r}{suggest(name, fields)}; "
-                            f"options: {', '.join(fields)}")
+            raise SpecError(located(f"integrator {key!r} has no option {name!r}"
+                                    f"{suggest(name, fields)}; options: {', '.join(fields)}", cls))
         default = options.get(name, fields[name].default)
         options[name] = parse_value(text, default, f"integrator {key!r}, option {name!r}")
     options.update({k: v for k, v in overrides.items() if k in fields and v is not None})
@@ -66,7 +67,7 @@ def make(spec: str, **overrides) -> Integrator:
     try:
         integrator.check()
     except ValueError as exc:
-        raise SpecError(f"integrator {spec!r}: {exc}") from None
+        raise SpecError(located(f"integrator {spec!r}: {exc}", cls)) from None
     return integrator
 
 

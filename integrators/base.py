@@ -18,6 +18,7 @@ from typing import Callable, ClassVar
 import numpy as np
 
 from problems.case import Case
+from problems.source import located
 
 class Status(enum.StrEnum):
     """How a run ended (design notes, section 6); the values are what runs.csv and the store
@@ -139,14 +140,18 @@ class Integrator:
         raise NotImplementedError
 
     def check(self) -> None:
-        """Validate the options; raise ``ValueError`` naming the bad one."""
+        """Validate the options; raise ``ValueError`` naming the bad one and where the class
+        is defined."""
+        cls = type(self)
         h = getattr(self, "h", None)
         if h is not None and not (np.isfinite(h) and h > 0):
-            raise ValueError(f"{type(self).__name__}: h = {h} must be positive and finite")
+            raise ValueError(located(f"{cls.__name__}: h = {h} must be positive and finite", cls))
         for name in ("rtol", "atol", "newton_tol"):
             tol = getattr(self, name, None)
             if tol is not None and not (0 < tol < 1):
-                raise ValueError(f"{type(self).__name__}: {name} = {tol} must lie in (0, 1)")
+                raise ValueError(located(f"{cls.__name__}: {name} = {tol} must lie in (0, 1)",
+                                         cls))
         limit = getattr(self, "newton_max_iter", None)
         if limit is not None and not limit >= 1:
-            raise ValueError(f"{type(self).__name__}: newton_max_iter = {limit} must be >= 1")
+            raise ValueError(located(f"{cls.__name__}: newton_max_iter = {limit} must be >= 1",
+                                     cls))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Callable, Mapping
@@ -11,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from problems.mechanics import Mechanics, System
+from problems.source import located
 
 #: Initial residuals at or below this are round-off and accepted as they are.
 CONSISTENT_TOL = 1e-12
@@ -173,24 +175,29 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
 
     Residuals up to :data:`CONSISTENT_TOL` are accepted; up to :data:`PROJECT_TOL` they are
     projected away (recorded in ``notes['projected']``); larger ones, or non-finite values,
-    raise :class:`InconsistentInitialValues` with the residuals.
+    raise :class:`InconsistentInitialValues` with the residuals. Every error leads with the
+    file and line of the call that made the case.
     """
     q0 = np.asarray(q0, dtype=np.float64)
     v0 = np.asarray(v0, dtype=np.float64)
     if q0.shape != (system.n,) or v0.shape != (system.n,):
-        raise InconsistentInitialValues(
-            f"{name}: q0 {q0.shape} and v0 {v0.shape} must both have shape ({system.n},)")
+        raise InconsistentInitialValues(located(
+            f"{name}: q0 {q0.shape} and v0 {v0.shape} must both have shape ({system.n},)",
+            sys._getframe(1)))
     if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(v0))):
-        raise InconsistentInitialValues(f"{name}: initial values are not finite")
+        raise InconsistentInitialValues(located(f"{name}: initial values are not finite",
+                                                sys._getframe(1)))
     t0, t_end = map(float, t_span)
     if not np.isfinite(t_end) or t_end <= t0:
-        raise ValueError(f"{name}: t_end = {t_end} must be finite and > t0 = {t0}")
+        raise ValueError(located(f"{name}: t_end = {t_end} must be finite and > t0 = {t0}",
+                                 sys._getframe(1)))
     mech = system.mech
     pos, vel = residuals(mech, q0, v0, t0)
     if max(pos, vel) > PROJECT_TOL:
-        raise InconsistentInitialValues(
+        raise InconsistentInitialValues(located(
             f"{name}: inconsistent initial values: |g(q0)| = {pos:.3e}, "
-            f"|G v0 + g_t| = {vel:.3e} (projection is allowed up to {PROJECT_TOL:g})")
+            f"|G v0 + g_t| = {vel:.3e} (projection is allowed up to {PROJECT_TOL:g})",
+            sys._getframe(1)))
     if max(pos, vel) > CONSISTENT_TOL:
         q0, v0 = project(mech, q0, v0, t0)
         notes = {**notes, "projected": f"|g| = {pos:.2e}, |G v + g_t| = {vel:.2e} before projection"}

@@ -1,5 +1,5 @@
 """The scaling benchmark: its C yardstick against rattle, the exponent fit, the bars, the
-process harness (time limit, peak memory) and the command line."""
+child processes (time limit, peak memory) and the command line."""
 
 import json
 import os
@@ -12,7 +12,7 @@ import pytest
 
 import integrators
 import problems
-from benchmarks.perf import scaling
+from benchmarks.perf import processes, scaling
 from benchmarks.perf.scaling import C_NAME, Point, bars, fit_exponent
 from benchmarks.executors import PLUGIN_ENV
 from integrators.base import Grid
@@ -22,7 +22,8 @@ PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
 
 @pytest.fixture(scope="module")
 def yardstick(tmp_path_factory):
-    exe, note, failed = scaling.compile_yardstick(tmp_path_factory.mktemp("yardstick"))
+    exe, note, failed = processes.compile_yardstick("rattle_chain",
+                                                   tmp_path_factory.mktemp("yardstick"))
     assert not failed, note
     if exe is None:
         pytest.skip(note)
@@ -129,8 +130,8 @@ def test_ring_bar_needs_the_bound_on_g_and_the_minute():
 
 
 def test_a_process_past_its_limit_is_killed_and_reported():
-    ending, _, _, _ = scaling.run_process([sys.executable, "-c", "import time; time.sleep(30)"],
-                                          0.5, dict(os.environ))
+    ending, _, _, _ = processes.run_process(
+        [sys.executable, "-c", "import time; time.sleep(30)"], 0.5, dict(os.environ))
     assert ending == "timeout"
 
 
@@ -138,11 +139,12 @@ def test_peak_memory_is_the_program_s_own_not_its_parent_s():
     """A parent holding 200 MB starts a bare interpreter: ``ru_maxrss`` from ``wait4``
     would report at least 200 MB (Linux charges the parent's resident set at the exec);
     the program's own high-water mark is what a bare interpreter takes, tens of MB."""
-    if scaling.peak_rss() is None:
+    if processes.peak_rss() is None:
         pytest.skip("no /proc on this system")
     held = np.ones(200 << 17)  # 200 MiB, touched
-    ending, out, _, _ = scaling.run_process(
-        [sys.executable, "-c", "from benchmarks.perf.scaling import peak_rss; print(peak_rss())"],
+    ending, out, _, _ = processes.run_process(
+        [sys.executable, "-c",
+         "from benchmarks.perf.processes import peak_rss; print(peak_rss())"],
         60.0, dict(os.environ))
     assert ending == "" and held.sum() > 0
     assert int(out.split()[-1]) < 100 << 20

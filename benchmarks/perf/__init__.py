@@ -4,6 +4,7 @@ Each module runs as ``python -m benchmarks.perf.NAME`` and measures side by side
 (a ratio, never a timed assertion): ``throughput`` (steps per second against a C RATTLE
 loop), ``scaling`` (cost per step against N, every family, against a C O(N) RATTLE),
 ``ida_overhead`` (IDA's time in our callbacks), ``parallel_speedup`` (engines and worker
-counts on one suite) and ``suite_time`` (each suite end to end against its budget). The C
-yardsticks are in ``yardstick/``.
+counts on one suite) and ``suite_time`` (each suite end to end against its budget, and with
+``--compile`` what compiling costs, cold and warm). The C yardsticks are in ``yardstick/``;
+``processes`` runs them and the other child processes and reads their peak memory.
 """

@@ -13,8 +13,7 @@ What runs
     of at most 1.1e-4 (chain: ``baumgarte-rk4``, the explicit method; ring: ``rattle``
     and ``baumgarte-rk4``), and the C RATTLE ran 2000 steps of the chain at N = 16384 with
     ``h = 2e-5`` (at ``4e-5`` its Newton failed). ``lobatto3ab3`` was checked the same way
-    on the chain at N = 16 only (dense, it cannot run N = 256 today) and not on the ring;
-    ``ida-ggl`` chooses its own steps.
+    on the chain at N = 16 only and not on the ring; ``ida-ggl`` chooses its own steps.
 
     At each chain N the C yardstick ``benchmarks/perf/yardstick/rattle_chain.c`` runs the same
     steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
@@ -52,10 +51,9 @@ What each number is
         the peak resident set of the point's whole process, from its start to its end
         (``VmHWM``, which the process reads from ``/proc`` at its end; for a process killed
         at the time limit the benchmark reads it just before the kill): interpreter, JAX,
-        the case, compilation and the solves. Not ``os.wait4``'s ``ru_maxrss``: Linux
-        charges a started program with the resident set of the process that started it (a
-        400 MB parent made ``/bin/true`` peak at 400 MB by ``wait4``). The same figure for a
-        process that only imports the suite and computes once is printed as the baseline.
+        the case, compilation and the solves (:mod:`benchmarks.perf.processes` says why
+        not ``ru_maxrss``). The same figure for a process that only imports the suite and
+        computes once is printed as the baseline.
     linear solver
         ``Trajectory.linear_solver``, what the method says ran.
 
@@ -89,10 +87,7 @@ import math
 import os
 import platform
 import resource
-import shutil
-import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -101,10 +96,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.perf.processes import (compile_yardstick, memory_exhausted, peak_rss,
+                                       run_process, state_difference)
 from benchmarks.records import EXIT_INPUT, CommandParser
-
-ROOT = Path(__file__).resolve().parents[2]
-YARDSTICK = Path(__file__).resolve().parent / "yardstick" / "rattle_chain.c"
 
 FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
 SIZES = (64, 256, 1024, 4096, 16384)
@@ -130,10 +124,7 @@ FIT_FROM = 1024
 #: tolerance; on chain:N=8 over 300 steps of h = 1e-3 they end 6e-16 (q) and 1.3e-14 (v)
 #: apart. Gravity off by 0.1 % moves q by 5e-9 and v by 1e-5 over 100 steps of 1e-5.
 AGREE_Q, AGREE_V = 1e-12, 1e-10
-#: Seconds between polls of a running point.
-POLL = 0.05
 C_NAME = "C"
-STATUSES = ("ok", "failed", "timeout", "out of memory", "error", "not run")
 
 #: The bars of the scaling issue.
 RATIO_BAR, RATIO_SIZES = 10.0, (1024, 16384)
@@ -174,25 +165,6 @@ class Point:
 
 
 # --------------------------------------------------------------------------- one point
-
-def peak_rss(pid: int | str = "self") -> int | None:
-    """Peak resident set of process ``pid`` since its program started (``VmHWM``, bytes);
-    None where ``/proc`` does not give it."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def memory_exhausted(text: str) -> bool:
-    """Whether an error text says that an allocation failed."""
-    return any(s in text for s in ("RESOURCE_EXHAUSTED", "MemoryError", "Out of memory",
-                                   "out of memory", "bad_alloc", "Cannot allocate memory"))
-
 
 def more(times: list[float], repeats: int) -> bool:
     """Whether to time another run after ``times``: at least ``repeats``, more while they
@@ -270,43 +242,6 @@ def point_main(argv: list[str]) -> int:
 CHILD = "import sys; from benchmarks.perf.scaling import point_main; sys.exit(point_main(sys.argv[1:]))"
 
 
-def run_process(command: list[str], limit: float,
-                env: dict) -> tuple[str, str, str, int | None]:
-    """Run ``command`` from the repository root under a wall-clock ``limit``.
-
-    Returns ``(ending, stdout, stderr, peak)``: ``ending`` is ``""`` for a normal exit,
-    ``"timeout"`` when it was killed at the limit, else how it ended; ``peak`` is the last
-    :func:`peak_rss` read while it ran (read just before a kill; a process that reports its
-    own peak at its end is more exact).
-    """
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=out, stderr=err, text=True)
-        deadline = time.monotonic() + limit
-        killed, peak = False, None
-        while True:
-            # Read before polling: the status of an exited process no longer has VmHWM.
-            peak = peak_rss(proc.pid) or peak
-            if proc.poll() is not None:
-                break
-            if time.monotonic() >= deadline:
-                proc.kill()
-                proc.wait()
-                killed = True
-                break
-            time.sleep(POLL)
-        out.seek(0)
-        err.seek(0)
-        stdout, stderr = out.read(), err.read()
-    code = proc.returncode
-    if killed:
-        ending = "timeout"
-    elif code < 0:
-        ending = f"killed by {signal.Signals(-code).name}"
-    else:
-        ending = "" if code == 0 else f"exit code {code}"
-    return ending, stdout, stderr, peak
-
-
 def newton_tol(problem: str, n: int, settings: dict) -> float | None:
     """Newton's tolerance at a point: relative to ``l^2 = 1/N^2`` on the chain (see above)."""
     return settings["newton_tol"] / n ** 2 if problem == "chain" else None
@@ -343,22 +278,7 @@ def run_family(problem: str, n: int, family: str, settings: dict, env: dict,
     return point
 
 
-def compile_yardstick(workdir: Path) -> tuple[Path | None, str, bool]:
-    """Compile the C yardstick: ``(executable or None, note, failed)``; ``failed`` is True
-    when a compiler exists and the build failed (no compiler is a skip, not a failure)."""
-    compiler = shutil.which("cc") or shutil.which("gcc")
-    if compiler is None:
-        return None, "no C compiler (cc or gcc) on PATH: the C yardstick is skipped", False
-    exe = workdir / "rattle_chain"
-    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICK), "-lm"]
-    done = subprocess.run(command, capture_output=True, text=True)
-    if done.returncode != 0:
-        return None, f"{' '.join(command)} failed: {done.stderr.strip()}", True
-    version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
-    return exe, f"{' '.join(command)}  [{version.splitlines()[0] if version else compiler}]", False
-
-
-def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
+def run_yardstick(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
     """The C yardstick on chain:N, ``repeats`` runs; the point and its final ``(q, v)``."""
     h, steps, tol = settings["h"]["chain"], settings["steps"], newton_tol("chain", n, settings)
     point = Point("chain", n, C_NAME, "ok", linear_solver="tridiagonal (Thomas)")
@@ -400,7 +320,7 @@ def run_c(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
 def baseline_rss(env: dict) -> int | None:
     """Peak resident set of a process that imports the suite and computes once (bytes)."""
     code = ("import jax, jax.numpy as jnp, integrators, problems; "
-            "from benchmarks.perf.scaling import peak_rss; "
+            "from benchmarks.perf.processes import peak_rss; "
             "jax.block_until_ready(jnp.ones(3) * 2.0); print(peak_rss())")
     ending, stdout, stderr, _ = run_process([sys.executable, "-c", code], LIMIT, env)
     if ending:
@@ -546,9 +466,7 @@ def ring_bars(points: list[Point], settings: dict) -> list[dict]:
 
 def agreement(c_state: np.ndarray, rattle_state: np.ndarray) -> tuple[bool, float, float]:
     """Whether C and rattle end in the same ``(q, v)``; the two max-norm differences."""
-    half = len(c_state) // 2
-    dq = float(np.max(np.abs(c_state[:half] - rattle_state[:half])))
-    dv = float(np.max(np.abs(c_state[half:] - rattle_state[half:])))
+    dq, dv = state_difference(c_state, rattle_state)
     return dq <= AGREE_Q and dv <= AGREE_V, dq, dv
 
 
@@ -691,7 +609,8 @@ def main(argv: list[str] | None = None) -> int:
     print("baseline: a process that imports the suite and computes once peaks at "
           + ("? (no /proc)" if baseline is None else f"{baseline / 2**20:.0f} MiB resident"))
     with tempfile.TemporaryDirectory() as tmp:
-        exe, note, c_failed = (compile_yardstick(Path(tmp)) if "chain" in settings["problems"]
+        exe, note, c_failed = (compile_yardstick("rattle_chain", Path(tmp))
+                               if "chain" in settings["problems"]
                                else (None, "not used (no chain in this run)", False))
         print(f"C yardstick: {note}")
         ok &= not c_failed
@@ -700,7 +619,7 @@ def main(argv: list[str] | None = None) -> int:
             for n in settings["n"]:
                 c_point = c_state = None
                 if problem == "chain" and exe is not None:
-                    c_point, c_state = run_c(exe, n, settings)
+                    c_point, c_state = run_yardstick(exe, n, settings)
                     points.append(c_point)
                     ok &= c_point.status != "error"
                 for family in settings["families"]:

@@ -28,10 +28,11 @@ Throughput
 
 Memory
     ``rattle`` runs ``1e6`` and ``1e7`` steps on sps-receiver, each in a fresh Python
-    process, and the peak resident set of each process is read from the kernel
-    (``os.wait4``). The bar: both peaks under :data:`MEMORY_BAR` and no growth with the
-    step count beyond :data:`MEMORY_GROWTH` (anything the loop kept per step, even one
-    float, would add at least 72 MB over the extra ``9e6`` steps).
+    process, and the peak resident set of each process is its own high-water mark
+    (:func:`benchmarks.perf.processes.peak_rss`). The bar: both peaks under
+    :data:`MEMORY_BAR` and no growth with the step count beyond :data:`MEMORY_GROWTH`
+    (anything the loop kept per step, even one float, would add at least 72 MB over the
+    extra ``9e6`` steps).
 
 Figures and verdicts are printed; nothing is asserted silently. The exit status is 1 only
 when something did not run or the implementations disagree, not when a bar is missed.
@@ -45,10 +46,9 @@ Usage::
 from __future__ import annotations
 
 import json
+import math
 import os
-import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -58,6 +58,7 @@ import numpy as np
 
 import integrators
 import problems
+from benchmarks.perf.processes import compile_yardstick, run_process, state_difference
 from benchmarks.records import CommandParser
 from integrators.base import Grid
 from integrators.loop import kernel_environment
@@ -85,28 +86,16 @@ AGREE_RESIDUAL = 1e-14
 #: it by O(1).
 AGREE_ENERGY_REL = 1e-3
 
-YARDSTICK = Path(__file__).resolve().parent / "yardstick" / "rattle_sps.c"
 PROBLEM = "sps-receiver"
-
-
-def compile_yardstick(workdir: Path) -> tuple[Path | None, str]:
-    """Compile the C yardstick; return the executable (None if impossible) and a note."""
-    compiler = shutil.which("cc") or shutil.which("gcc")
-    if compiler is None:
-        return None, "no C compiler (cc or gcc) on PATH: the C yardstick is skipped"
-    exe = workdir / "rattle_sps"
-    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICK), "-lm"]
-    done = subprocess.run(command, capture_output=True, text=True)
-    if done.returncode != 0:
-        return None, f"{' '.join(command)} failed: {done.stderr.strip()}"
-    version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
-    return exe, f"{' '.join(command)}  [{version.splitlines()[0] if version else compiler}]"
 
 
 def run_c(exe: Path, steps: int, h: float, tol: float) -> dict:
     """One run of the C loop: its rate and results."""
-    out = subprocess.run([str(exe), str(steps), repr(h), repr(tol)], capture_output=True,
-                         text=True, check=True).stdout.split()
+    ending, stdout, stderr, _ = run_process([str(exe), str(steps), repr(h), repr(tol)],
+                                            math.inf, dict(os.environ))
+    if ending:
+        raise RuntimeError(f"the C yardstick ended with {ending}: {stderr.strip()[-2000:]}")
+    out = stdout.split()
     n, secs, cpu = int(out[0]), float(out[1]), float(out[10])
     return {"rate": n / secs, "cpu_rate": n / cpu, "q": [float(out[2]), float(out[3])],
             "v": [float(out[4]), float(out[5])],
@@ -142,7 +131,7 @@ def summary(traj) -> dict:
 
 def agreement(c: dict, jax_run: dict) -> tuple[bool, str]:
     """Whether the C loop and rattle agree (final state and the three maxima)."""
-    dq = max(abs(a - b) for a, b in zip(c["q"] + c["v"], jax_run["q"] + jax_run["v"]))
+    dq = max(state_difference(c["q"] + c["v"], jax_run["q"] + jax_run["v"]))
     dpos = abs(c["max"]["pos"] - jax_run["max"]["pos"])
     dvel = abs(c["max"]["vel"] - jax_run["max"]["vel"])
     de = abs(c["max"]["energy"] - jax_run["max"]["energy"]) / c["max"]["energy"]
@@ -156,7 +145,7 @@ def agreement(c: dict, jax_run: dict) -> tuple[bool, str]:
 
 def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) -> bool:
     """The side-by-side timing; returns False if something did not run or disagreed."""
-    exe, note = compile_yardstick(workdir)
+    exe, note, _ = compile_yardstick("rattle_sps", workdir)
     print(f"C yardstick: {note}")
     keys = ["rattle", "lobatto3ab3"]
     methods = {}
@@ -222,7 +211,7 @@ def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) 
     print(f"  C and rattle agree: {'yes' if agree else 'NO'}: {text}")
     if "lobatto3ab3" in results:
         other, ours = results["lobatto3ab3"], results["rattle"]
-        d = max(abs(a - b) for a, b in zip(other["q"] + other["v"], ours["q"] + ours["v"]))
+        d = max(state_difference(other["q"] + other["v"], ours["q"] + ours["v"]))
         print(f"  for scale: lobatto3ab3 ends {d:.2e} away from rattle (their different "
               f"discretisation errors)")
     return ok and agree
@@ -231,6 +220,7 @@ def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) 
 CHILD = """
 import json, sys, time
 import integrators, problems
+from benchmarks.perf.processes import peak_rss
 from integrators.base import Grid
 steps, h = int(sys.argv[1]), float(sys.argv[2])
 case = problems.make({problem!r}).with_t_end(steps * h)
@@ -238,26 +228,19 @@ solve = integrators.make("rattle", h=h).prepare(case, Grid(case.t0, case.t_end))
 start = time.perf_counter()
 traj = solve()
 print(json.dumps({{"status": traj.status, "steps": traj.counts["n_steps"],
-                  "solve_s": time.perf_counter() - start}}))
+                  "solve_s": time.perf_counter() - start, "peak_rss": peak_rss()}}))
 """
 
 
-def peak_rss(steps: int, h: float, env: dict) -> tuple[int, dict]:
-    """Peak resident set (bytes) of a fresh process that runs rattle for ``steps`` steps."""
-    code = CHILD.format(problem=PROBLEM)
-    with tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen([sys.executable, "-c", code, str(steps), repr(h)], env=env,
-                                stdout=subprocess.PIPE, stderr=err, text=True)
-        out = proc.stdout.read()
-        # wait4 reaps the child with its own resource usage (ru_maxrss in KiB on Linux);
-        # RUSAGE_CHILDREN would give the largest of all children instead.
-        _, status, usage = os.wait4(proc.pid, 0)
-        code = proc.returncode = os.waitstatus_to_exitcode(status)
-        if code != 0:
-            err.seek(0)
-            raise RuntimeError(f"the {steps:.0e}-step run exited with {code}: "
-                               f"{err.read()[-2000:]}")
-    return usage.ru_maxrss * 1024, json.loads(out.strip().splitlines()[-1])
+def run_peak(steps: int, h: float, env: dict) -> tuple[int | None, dict]:
+    """Peak resident set (bytes; None without ``/proc``) of a fresh process that runs rattle
+    for ``steps`` steps, and what it reports of its run."""
+    command = [sys.executable, "-c", CHILD.format(problem=PROBLEM), str(steps), repr(h)]
+    ending, stdout, stderr, polled = run_process(command, math.inf, env)
+    if ending:
+        raise RuntimeError(f"the {steps:.0e}-step run ended with {ending}: {stderr[-2000:]}")
+    info = json.loads(stdout.strip().splitlines()[-1])
+    return info.pop("peak_rss") or polled, info
 
 
 def memory(h: float, counts: list[int]) -> bool:
@@ -266,7 +249,10 @@ def memory(h: float, counts: list[int]) -> bool:
     print(f"\npeak memory of rattle on {PROBLEM} (h = {h:g}), each run in a fresh process:")
     peaks = []
     for steps in counts:
-        peak, info = peak_rss(steps, h, env)
+        peak, info = run_peak(steps, h, env)
+        if peak is None:
+            print("  no peak memory on this system (no /proc): the bar is not measured")
+            return True
         peaks.append(peak)
         print(f"  {steps:.0e} steps: peak RSS {peak / 2**20:7.1f} MiB; status {info['status']}, "
               f"{info['steps']} steps, solve {info['solve_s']:.2f} s")

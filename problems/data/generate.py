@@ -10,9 +10,9 @@ which bounds the error of the looser run and so, conservatively, of the stored o
   independently of the Cartesian DAE, by scipy's DOP853; mapped to Cartesian ``(q, v)``.
 * ``bricard``: the index-1 (acceleration-level) ODE of the problem's own System, with the
   minimum-norm least-squares multipliers of :meth:`Mechanics.accelerations` (the
-  constraints are redundant), by scipy's DOP853, and the stored states projected back onto ``g = 0`` and
-  ``G v = 0``. This one shares the model with the benchmarked runs; what it checks is the
-  integration.
+  constraints are redundant), by scipy's DOP853, and the stored states projected back onto
+  ``g = 0`` and ``G v = 0``. This one shares the model with the benchmarked runs; what it
+  checks is the integration.
 
 With no argument every file is regenerated.
 """

@@ -1,0 +1,113 @@
+"""Child processes of the self-benchmarks: one run under a time limit, its peak memory, and
+the C yardsticks (compiled here, run as children, compared with ours by their final state).
+
+Peak memory is the program's own high-water mark of resident memory, ``VmHWM`` in
+``/proc/PID/status``, read by the program itself at its end or by its parent while it runs.
+Not ``ru_maxrss`` (kilobytes on Linux) from ``os.wait4`` or ``RUSAGE_CHILDREN``: Linux keeps
+in it the high-water mark of the memory a process had before it started its program, which
+for a child is its parent's (a parent holding 400 MB makes ``/bin/true`` peak at 400 MB);
+``RUSAGE_CHILDREN`` gives the largest such figure of the waited-for descendants, not a sum.
+"""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: The repository root, where child processes start (so that they import this checkout).
+ROOT = Path(__file__).resolve().parents[2]
+#: The C yardsticks' sources.
+YARDSTICKS = Path(__file__).resolve().parent / "yardstick"
+#: Seconds between polls of a running child.
+POLL = 0.05
+
+
+def peak_rss(pid: int | str = "self") -> int | None:
+    """Peak resident set of process ``pid`` since its program started (``VmHWM``, bytes);
+    None where ``/proc`` does not give it."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def memory_exhausted(text: str) -> bool:
+    """Whether an error text says that an allocation failed."""
+    return any(s in text for s in ("RESOURCE_EXHAUSTED", "MemoryError", "Out of memory",
+                                   "out of memory", "bad_alloc", "Cannot allocate memory"))
+
+
+def run_process(command: list[str], limit: float,
+                env: dict) -> tuple[str, str, str, int | None]:
+    """Run ``command`` from the repository root under a wall-clock ``limit`` (seconds).
+
+    Returns ``(ending, stdout, stderr, peak)``: ``ending`` is ``""`` for a normal exit,
+    ``"timeout"`` when it was killed at the limit, else how it ended (``"exit code 1"``,
+    ``"killed by SIGKILL"``); ``peak`` is the last :func:`peak_rss` read while it ran (read
+    just before a kill; a process that reports its own peak at its end is more exact).
+    """
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=out, stderr=err, text=True)
+        deadline = time.monotonic() + limit
+        killed, peak = False, None
+        while True:
+            # Read before polling: the status of an exited process no longer has VmHWM.
+            peak = peak_rss(proc.pid) or peak
+            if proc.poll() is not None:
+                break
+            if time.monotonic() >= deadline:
+                proc.kill()
+                proc.wait()
+                killed = True
+                break
+            time.sleep(POLL)
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    code = proc.returncode
+    if killed:
+        ending = "timeout"
+    elif code < 0:
+        ending = f"killed by {signal.Signals(-code).name}"
+    else:
+        ending = "" if code == 0 else f"exit code {code}"
+    return ending, stdout, stderr, peak
+
+
+def compile_yardstick(name: str, workdir: Path) -> tuple[Path | None, str, bool]:
+    """Compile the C yardstick ``yardstick/NAME.c`` into ``workdir`` with the system C
+    compiler (``cc`` or ``gcc`` from ``PATH``, ``-O2``).
+
+    Returns ``(executable or None, note, failed)``: the note is the command and the
+    compiler's version, or why there is no executable; ``failed`` is True when a compiler
+    exists and the build failed (no compiler is a skip, not a failure).
+    """
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        return None, "no C compiler (cc or gcc) on PATH: the C yardstick is skipped", False
+    exe = workdir / name
+    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICKS / f"{name}.c"), "-lm"]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        return None, f"{' '.join(command)} failed: {done.stderr.strip()}", True
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
+    return exe, f"{' '.join(command)}  [{version.splitlines()[0] if version else compiler}]", False
+
+
+def state_difference(c_state, state) -> tuple[float, float]:
+    """Max-norm differences of the final positions and of the final velocities of a C
+    yardstick and of ours, each given as the stacked ``(q, v)``."""
+    c_state, state = np.asarray(c_state, float), np.asarray(state, float)
+    half = len(c_state) // 2
+    return (float(np.max(np.abs(c_state[:half] - state[:half]))),
+            float(np.max(np.abs(c_state[half:] - state[half:]))))
