@@ -63,6 +63,7 @@ import jax
 import jax.numpy as jnp
 
 import problems
+from benchmarks import compilation
 from benchmarks.executors import Outcome, Task, load_plugins, perform, pick
 from integrators.loop import kernel_environment
 
@@ -174,6 +175,8 @@ def serve(fd: int, parent_pid: int, cpu: int) -> None:
     if cpu >= 0:
         os.sched_setaffinity(0, {cpu})
     try:
+        # The folder the parent chose reaches us through the environment.
+        compilation.enable()
         load_plugins()
         _warm_up()
     except BaseException as exc:

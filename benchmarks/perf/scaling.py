@@ -96,6 +96,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import compilation
 from benchmarks.perf.processes import (compile_yardstick, memory_exhausted, peak_rss,
                                        run_process, state_difference)
 from benchmarks.records import EXIT_INPUT, CommandParser
@@ -586,6 +587,7 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks.pool import thread_environment
 
     args = parser().parse_args(argv)
+    compilation.enable()
     try:
         load_plugins()
         settings = settings_of(args)

@@ -58,6 +58,7 @@ import numpy as np
 
 import integrators
 import problems
+from benchmarks import compilation
 from benchmarks.perf.processes import compile_yardstick, run_process, state_difference
 from benchmarks.records import CommandParser
 from integrators.base import Grid
@@ -282,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--xla-default", action="store_true",
                         help="leave XLA_FLAGS as they are (no one-kernel loop flag)")
     args = parser.parse_args(argv)
+    compilation.enable()
     # JAX reads XLA_FLAGS once, when its CPU client starts (at the first computation, not at
     # import): nothing has computed yet.
     if not args.xla_default:
