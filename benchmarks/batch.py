@@ -73,9 +73,8 @@ from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.files import FolderInUse, FolderLock, replace_file
 from benchmarks.pool import Pool, usable_cpus
 from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunSpec,
-                                blank_row, identity, one_line, provenance)
+                                Status, blank_row, identity, one_line, provenance)
 from benchmarks.store import STORE_NAME, UNFINISHED, Store, StoreError, load_runs
-from integrators.base import ERROR, TIMEOUT
 from problems.spec import SpecError, split_spec, suggest
 from studies import STUDIES
 
@@ -259,7 +258,7 @@ def _outcome_record(spec: RunSpec, fixed: dict, task: Task, outcome: Outcome) ->
         message = f"{outcome.message} during {outcome.phase or 'start-up'}"
     else:
         message = outcome.message
-    status = TIMEOUT if outcome.state == "timeout" else ERROR
+    status = Status.TIMEOUT if outcome.state == "timeout" else Status.ERROR
     return Record(blank_row(spec, **fixed, status=status, message=message))
 
 
@@ -601,7 +600,7 @@ def _studies(store: Store, session: int, targets: dict[str, str], out: Path,
             except (sqlite3.Error, OSError) as exc:
                 fail(f"{store.path}: storing the error of study {name} failed ({exc}); "
                      f"its error: {error}")
-        status = "ok" if error is None else f"error: {error}"
+        status = Status.OK if error is None else f"{Status.ERROR}: {error}"
         bar.finish(task.id, f"{task.label}: {status}")
 
     return tasks, report

@@ -29,8 +29,8 @@ import problems
 from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
-from benchmarks.records import Record, RunSpec, blank_row, provenance, run_key
-from integrators.base import COUNTERS, ERROR, FAILED, OK, Grid, Trajectory
+from benchmarks.records import Record, RunSpec, Status, blank_row, provenance, run_key
+from integrators.base import COUNTERS, Grid, Trajectory
 from problems.spec import parse_value, split_spec
 
 
@@ -111,7 +111,7 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
         version = version or provenance()["code_version"]
         row = blank_row(spec, **known(spec, case, integ, grid_options, version))
     except Exception as exc:  # bad input or a defect: recorded, never fatal to the suite
-        return Record(blank_row(spec, status=ERROR, message=explain(exc)))
+        return Record(blank_row(spec, status=Status.ERROR, message=explain(exc)))
     try:
         grid = Grid(case.t0, case.t_end, **(grid_options or {}))
         phase("set-up")
@@ -135,7 +135,7 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
                    wall_max_s=max(times), repeats=len(times))
         row.update(trajectory_columns(case, traj))
     except Exception as exc:  # a defect in the method or the user's functions
-        return Record({**row, "status": ERROR, "message": explain(exc)})
+        return Record({**row, "status": Status.ERROR, "message": explain(exc)})
     return Record(row, traj.windows, traj.samples)
 
 
@@ -186,8 +186,8 @@ def trajectory_columns(case, traj: Trajectory) -> dict:
         pattern_nnz=traj.pattern_nnz,
     )
     cols.update(growth(case, traj))
-    if traj.status == OK and (bad := _non_finite(traj)) is not None:
+    if traj.status == Status.OK and (bad := _non_finite(traj)) is not None:
         what, when = bad
-        cols.update(status=FAILED, fail_time=when,
+        cols.update(status=Status.FAILED, fail_time=when,
                     message=f"the method reported success but {what}")
     return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in cols.items()}

@@ -22,6 +22,7 @@ This module imports neither JAX nor an integrator nor a problem.
 from __future__ import annotations
 
 import argparse
+import enum
 import functools
 import hashlib
 import json
@@ -74,6 +75,21 @@ CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
 #: Distributions whose versions are recorded with every invocation.
 PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
             "pandas", "matplotlib", "dask", "distributed")
+
+
+class Status(enum.StrEnum):
+    """How a run ended (design notes, section 6): the members of
+    :class:`integrators.base.Status`, whose values runs.csv and the store hold.
+
+    Defined here as well because the store and the reports read records without importing
+    an integrator (and with it JAX); ``tests/test_store.py`` holds the two equal.
+    """
+
+    OK = "ok"
+    FAILED = "failed"
+    TIMEOUT = "timeout"
+    ERROR = "error"
+    SKIPPED = "skipped"
 
 
 class InputError(ValueError):

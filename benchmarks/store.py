@@ -54,12 +54,12 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.files import new_file_mode
-from benchmarks.records import COLUMNS, TEXT_COLUMNS, Record, provenance
+from benchmarks.records import COLUMNS, TEXT_COLUMNS, Record, Status, provenance
 
 SCHEMA_VERSION = 2
 STORE_NAME = "driftbench.sqlite"
 #: Statuses of runs that a resumed suite must run again.
-UNFINISHED = ("error", "timeout")
+UNFINISHED = (Status.ERROR, Status.TIMEOUT)
 #: Session columns joined onto every run by :func:`load_runs` (stored name -> loaded name).
 SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha": "commit",
                    "dirty": "dirty", "machine": "machine", "python": "python",

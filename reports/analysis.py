@@ -28,6 +28,7 @@ import pandas as pd
 
 from benchmarks import gate, records
 from benchmarks.drift import fit_order
+from benchmarks.records import Status
 
 #: Factor within which two methods count as tied for the smallest drift.
 TIE_FACTOR = 10.0
@@ -98,7 +99,7 @@ def setting(row) -> str:
 
 
 def is_ok(row) -> bool:
-    return row.get("status") == "ok"
+    return row.get("status") == Status.OK
 
 
 def latest(runs: pd.DataFrame) -> pd.DataFrame:
@@ -120,7 +121,7 @@ def representative(runs: pd.DataFrame) -> pd.DataFrame:
     if runs.empty:
         return runs
     r = runs.copy()
-    r["_ok"] = (r["status"] == "ok").astype(int)
+    r["_ok"] = (r["status"] == Status.OK).astype(int)
     r["_coarse"] = r["h"].astype(float).fillna(r["rtol"].astype(float)).fillna(0.0)
     r["_t_end"] = r["t_end"].astype(float).fillna(0.0)
     r = r.sort_values(["_t_end", "_ok", "_coarse"], ascending=False)
@@ -133,7 +134,7 @@ def sweep_horizon(runs: pd.DataFrame) -> float | None:
     settings (ties: the longest). Work-precision, convergence and cost at matched accuracy
     compare runs at this one horizon only: errors over different horizons do not compare.
     """
-    ok = runs[(runs["status"] == "ok") & runs["t_end"].notna()]
+    ok = runs[(runs["status"] == Status.OK) & runs["t_end"].notna()]
     if ok.empty:
         return None
     counts = ok.assign(_s=[f"{r['integrator']}|{setting(r)}" for _, r in ok.iterrows()]) \
@@ -167,7 +168,7 @@ class Winner:
 def drift_winner(runs: pd.DataFrame) -> Winner:
     """Smallest ``max(|g|, |G v + g_t|)`` among the finished representative runs."""
     rep = representative(runs)
-    rep = rep[rep["status"] == "ok"]
+    rep = rep[rep["status"] == Status.OK]
     vals = {r["integrator"]: worst_constraint(r) for _, r in rep.iterrows()}
     vals = {k: v for k, v in vals.items() if not math.isnan(v)}
     if not vals:
@@ -185,7 +186,7 @@ def energy_winner(runs: pd.DataFrame) -> Winner:
     """Smallest max relative energy error among the finished representative runs, with
     the drift class its run recorded."""
     rep = representative(runs)
-    rep = rep[(rep["status"] == "ok") & rep["rel_energy_error"].notna()]
+    rep = rep[(rep["status"] == Status.OK) & rep["rel_energy_error"].notna()]
     if rep.empty:
         return Winner(None, math.nan, "no conserved energy, or no finished run")
     row = rep.loc[rep["rel_energy_error"].astype(float).idxmin()]
@@ -330,7 +331,7 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
     """The accuracy that cost is matched on: the final error where a reference exists and
     the problem is not chaotic (there it measures how fast nearby solutions separate), else
     the relative energy error; None when neither was measured."""
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     columns = ("rel_energy_error",) if is_sensitive(runs) else \
         ("final_state_error", "rel_energy_error")
     for col in columns:
@@ -341,7 +342,7 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
 
 def reaching(runs: pd.DataFrame, column: str, target: float) -> pd.DataFrame:
     """The finished runs whose :func:`accuracy` in ``column`` is at or below ``target``."""
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     values = np.array([accuracy(r, column) for _, r in ok.iterrows()], dtype=float)
     return ok[values <= target] if len(ok) else ok
 
@@ -374,7 +375,7 @@ def cost_winner(runs: pd.DataFrame) -> Winner:
     metric = accuracy_metric(runs)
     if metric is None:
         return Winner(None, math.nan, "no accuracy measured")
-    ok = runs[(runs["status"] == "ok") & runs[metric].notna()]
+    ok = runs[(runs["status"] == Status.OK) & runs[metric].notna()]
     if ok.empty:
         return Winner(None, math.nan, "no finished run with a measured accuracy")
     best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
@@ -414,7 +415,7 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
     :func:`verdict_floor` cannot be checked and says so.
     """
     runs = at_sweep_horizon(runs)
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     ran = sorted(set(runs["integrator"]))
     out = []
     for name in TARGET_METRICS:
@@ -503,7 +504,7 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
     self-convergence estimate; that run is left out). Uses the horizon with the most
     distinct step sizes.
     """
-    fixed = runs[(runs["status"] == "ok") & runs["h"].notna()].copy()
+    fixed = runs[(runs["status"] == Status.OK) & runs["h"].notna()].copy()
     if fixed.empty:
         return [], "no finished fixed-step run"
     counts = fixed.groupby("t_end")["h"].nunique()

@@ -208,3 +208,14 @@ def test_a_killed_writer_keeps_every_finished_run(tmp_path):
     assert list(runs["run_key"]) == ["0", "1", "2"]
     assert len(load_series(path, int(runs.iloc[2]["run_id"]))["windows"]) == 4
 
+
+
+def test_the_records_status_is_the_integrators():
+    """The store and reports read statuses from benchmarks.records (no JAX there); the
+    integrators write integrators.base.Status: one vocabulary, member for member."""
+    from benchmarks.records import Status
+    from integrators.base import Status as IntegratorStatus
+
+    assert [(s.name, s.value) for s in Status] == \
+        [(s.name, s.value) for s in IntegratorStatus]
+    assert all(a == b for a, b in zip(Status, IntegratorStatus))
