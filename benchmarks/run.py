@@ -45,8 +45,9 @@ from pathlib import Path
 import integrators
 import problems
 from benchmarks import suites
-from benchmarks.batch import expand, run_specs
+from benchmarks.batch import run_specs
 from benchmarks.executors import load_plugins
+from benchmarks.plan import expand
 from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
 from reports import build as build_report
 from studies import STUDIES

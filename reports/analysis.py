@@ -204,7 +204,7 @@ def is_sensitive(runs: pd.DataFrame) -> bool:
 
 def reference_floor(row) -> float:
     """The accuracy of the reference a run's final error was measured against; 0 where the
-    record does not say (a closed form, or a store written before floors were recorded)."""
+    record holds none (a closed form)."""
     floor = _num(row.get("reference_floor"))
     return 0.0 if math.isnan(floor) else floor
 
@@ -266,14 +266,10 @@ class Timing:
 
 
 def timing(row) -> Timing:
-    """The :class:`Timing` of a run; the spread collapses to the median where the record
-    lacks it (a store written before it was recorded counts as one solve)."""
-    median = _num(row.get("wall_s"))
-    low, high, n = _num(row.get("wall_min_s")), _num(row.get("wall_max_s")), \
-        _num(row.get("repeats"))
-    if math.isnan(low) or math.isnan(high):
-        return Timing(median, median, median, 1)
-    return Timing(median, low, high, 1 if math.isnan(n) else int(n))
+    """The :class:`Timing` of a run (NaN times and one solve where it has none)."""
+    n = _num(row.get("repeats"))
+    return Timing(_num(row.get("wall_s")), _num(row.get("wall_min_s")),
+                  _num(row.get("wall_max_s")), 1 if math.isnan(n) else int(n))
 
 
 @dataclass

@@ -107,11 +107,10 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
 
 def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
     """Family -> its integrators, both sorted, as the runs recorded them (the integrators'
-    ``family`` trait); runs stored before families were recorded count as a family of
-    their own."""
+    ``family`` trait); a method that declares no family counts as a family of its own."""
     if runs.empty:
         return {}
-    family = runs.get("family", pd.Series(index=runs.index, dtype=object))
+    family = runs["family"]
     named = family.where(family.notna() & (family.astype(str) != ""), runs["integrator"])
     members: dict[str, list[str]] = {}
     for key, name in sorted(set(zip(runs["integrator"], named.astype(str)))):
