@@ -23,7 +23,8 @@ from typing import Iterable, TextIO
 
 import pandas as pd
 
-from benchmarks.batch import expand, run_specs, user_code
+from benchmarks.batch import run_specs, user_code
+from benchmarks.plan import expand
 from benchmarks.records import COLUMNS, InputError
 from problems import Case
 from reports import build as build_report
@@ -85,7 +86,7 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
     problems = list(problems)
     cases = [p for p in problems if isinstance(p, Case)]
     specs = [p.name if isinstance(p, Case) else p for p in problems]
-    user_code(load, cases)  # so that expand knows what the user registered
+    user_code(load, cases)  # so that expand resolves what the user registered
     try:
         runs = expand(specs, list(integrators), [float(x) for x in h],
                       [float(x) for x in rtol], [float(x) for x in atol],

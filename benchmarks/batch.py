@@ -1,4 +1,4 @@
-"""A batch of runs: plan, validate, resume, hand to an engine, write runs.csv and the store.
+"""A batch of runs: plan, resume, hand to an engine, write runs.csv and the store.
 
 :func:`run_specs` is the only writer of the results store. It hands every run to an engine
 (:class:`~benchmarks.executors.Executor`): the local process pool
@@ -21,12 +21,11 @@
   store on its own as it ends, by this process alone (never by a worker), so a batch killed
   at any point (even by ``SIGKILL``) leaves a consistent store with every finished run in
   it;
-- **validation first**: every case and integrator is built and checked before any run
-  starts; bad input raises :class:`~benchmarks.records.InputError` with one line that names
-  what is wrong and where, and nothing is written. Sizes are checked before a case is
-  built (:func:`problems.check_size`) and step counts before a run is planned
-  (:data:`STEP_LIMIT`), unless ``allow_large``; the estimated size of a long run is
-  printed;
+- **validation first**: every run is planned (:func:`benchmarks.plan.plan`: every case
+  and integrator built and checked once, here) before any starts; bad input raises
+  :class:`~benchmarks.records.InputError` with one line that names what is wrong and
+  where, and nothing is written. The estimated size of a long run is printed. The workers
+  receive the planned runs and execute them as they are;
 - **duplicates run once**: specs that resolve to the same run (same ``run_key``: problem,
   parameters, method, options and horizon, however they were written) run once; every one
   of them gets its record, and ``runs.csv`` lists the run once;
@@ -52,7 +51,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
-import itertools
 import math
 import sqlite3
 import sys
@@ -60,34 +58,19 @@ from pathlib import Path
 from typing import Callable, Iterable, TextIO
 
 import cloudpickle
-import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-import integrators
 import problems
-from benchmarks.cluster import Cluster
-from benchmarks.audit import AuditError, audit, explain
-from benchmarks.execute import build, known
 from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.files import FolderInUse, FolderLock, replace_file
+from benchmarks.plan import DEFAULT_TIMEOUT, PlannedRun, check_timeout, firsts, pending, plan
 from benchmarks.pool import Pool, usable_cpus
-from benchmarks.records import (COLUMNS, WHOLE_COLUMNS, InputError, Record, RunSpec,
-                                blank_row, identity, one_line, provenance)
-from benchmarks.store import STORE_NAME, UNFINISHED, Store, StoreError, load_runs
-from integrators.base import ERROR, TIMEOUT
-from problems.spec import SpecError, split_spec, suggest
+from benchmarks.records import (COLUMNS, Ending, InputError, Record, RunSpec, Status, one_line,
+                                provenance)
+from benchmarks.store import STORE_NAME, Store, StoreError
+from problems.spec import suggest
 from studies import STUDIES
-
-#: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
-DEFAULT_TIMEOUT = 3600.0
-#: Most steps of a fixed-step run planned without ``allow_large``: a thousand times the
-#: longest run of the shipped suites; ``--h 1e-9 --t-end 1`` (10^9 steps) would otherwise
-#: run silently for up to an hour.
-STEP_LIMIT = 10**8
-#: Runs of at least this many steps, or of steps times coordinates, get their estimated
-#: size printed before the batch starts.
-LONG_STEPS, LONG_WORK = 10**6, 10**8
 
 
 class OutputError(InputError):
@@ -101,96 +84,6 @@ def study_target(name: str) -> str:
         raise InputError(f"unknown study {name!r}{suggest(name, STUDIES)}; "
                          f"known: {', '.join(sorted(STUDIES))}")
     return STUDIES[name]
-
-
-def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=None,
-           timeout=None, origin="") -> list[RunSpec]:
-    """Every combination: ``hs`` go to fixed-step methods, ``rtols x atols`` to adaptive ones.
-
-    An empty list leaves the method's own default for that setting.
-    """
-    runs = []
-    for p, i in itertools.product(problem_specs, integrator_specs):
-        key = split_spec(i)[0]
-        if key not in integrators.REGISTRY:
-            integrators.make(i)  # raises the error that names the unknown key
-        if integrators.cls_of(key).adaptive:
-            for rtol, atol in itertools.product(rtols or [None], atols or [None]):
-                runs.append(RunSpec(p, i, None, rtol, atol, t_end, timeout, origin))
-        else:
-            runs.extend(RunSpec(p, i, h, None, None, t_end, timeout, origin)
-                        for h in (hs or [None]))
-    return runs
-
-
-def check_timeout(value, where: str) -> None:
-    """A time limit must be a positive number of seconds (``inf``: none)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise InputError(f"{where}: timeout = {value!r} must be a positive number of "
-                         f"seconds (inf for no limit)")
-
-
-def _steps(fixed: dict) -> float | None:
-    """The number of steps of a fixed-step run from its known columns, else None."""
-    h = fixed.get("h")
-    if h is None or fixed.get("t_end") is None:
-        return None
-    return (fixed["t_end"] - (fixed.get("t0") or 0.0)) / h
-
-
-def validate(specs: Iterable[RunSpec], version: str, grid_options: dict | None = None,
-             allow_large: bool = False, notes: list[str] | None = None) -> list[dict]:
-    """Build and check every run before any starts; return each run's known columns.
-
-    Each problem spec's size is checked before its case is built
-    (:func:`problems.check_size`); each case is built once per problem spec and ``t_end``
-    (building checks the initial values: inconsistent ones raise with their residuals) and
-    each integrator once per spec and setting; a fixed-step run of more than
-    :data:`STEP_LIMIT` steps is refused. ``allow_large`` lifts both limits. The returned
-    dicts are :func:`benchmarks.execute.known`: the columns fixed before the run, and its
-    ``run_key``. The estimated sizes of long runs are appended to ``notes``.
-
-    Raises
-    ------
-    InputError
-        On the first bad run, with where it was asked for (suite file and line) and what
-        is wrong, on one line.
-    """
-    built: dict[RunSpec, tuple] = {}
-    audited: set[str] = set()
-    out = []
-    for spec in specs:
-        where = f"{spec.origin}: " if spec.origin else ""
-        try:
-            if spec.timeout is not None:
-                check_timeout(spec.timeout, spec.label())
-            if spec not in built:
-                if not allow_large:
-                    problems.check_size(spec.problem)
-                built[spec] = build(spec)
-            name = split_spec(spec.problem)[0]
-            # The library's own problems are verified by its tests; user code is checked
-            # here, once per problem spec, before it can spoil every run.
-            if spec.problem not in audited and problems.origin(name) != "built-in":
-                audit(built[spec][0])
-                audited.add(spec.problem)
-            fixed = known(spec, *built[spec], grid_options, version)
-            steps = _steps(fixed)
-            if steps is not None:
-                n = int(built[spec][0].q0.size)
-                size = f"about {steps:.3g} steps of {n} coordinates"
-                if steps > STEP_LIMIT and not allow_large:
-                    raise InputError(f"{spec.label()}: {size} is above the limit of "
-                                     f"{STEP_LIMIT:.0e} steps; give a larger h, a shorter "
-                                     f"t_end, or {problems.ALLOW_LARGE} to run it anyway")
-                if notes is not None and (steps >= LONG_STEPS or steps * n >= LONG_WORK):
-                    notes.append(f"note: {spec.label()}: a long run, {size}")
-            out.append(fixed)
-        except (InputError, AuditError, SpecError) as exc:
-            raise InputError(one_line(f"{where}{exc}")) from None
-        except Exception as exc:  # user code or a defect met while building: one line
-            raise InputError(one_line(f"{where}{spec.label()}: {explain(exc)}")) from None
-    return out
 
 
 class Progress:
@@ -248,7 +141,7 @@ def _summary(row: dict) -> str:
     return ", ".join(parts)
 
 
-def _outcome_record(spec: RunSpec, fixed: dict, task: Task, outcome: Outcome) -> Record:
+def _outcome_record(run: PlannedRun, task: Task, outcome: Outcome) -> Record:
     """The record of a run from how its task ended."""
     if outcome.state == "done":
         return outcome.result
@@ -259,32 +152,8 @@ def _outcome_record(spec: RunSpec, fixed: dict, task: Task, outcome: Outcome) ->
         message = f"{outcome.message} during {outcome.phase or 'start-up'}"
     else:
         message = outcome.message
-    status = TIMEOUT if outcome.state == "timeout" else ERROR
-    return Record(blank_row(spec, **fixed, status=status, message=message))
-
-
-def _stored_rows(store_path: Path, keys: set[str]) -> dict[str, dict]:
-    """The latest finished stored row of each run key (for runs.csv of a resumed batch)."""
-    frame = load_runs(store_path)
-    frame = frame[frame["run_key"].isin(keys) & ~frame["status"].isin(UNFINISHED)]
-    rows = {}
-    for record in frame.sort_values("run_id").to_dict(orient="records"):
-        row = {}
-        for c in COLUMNS:
-            value = record.get(c)
-            value = value.item() if isinstance(value, np.generic) else value
-            if isinstance(value, float) and math.isnan(value):
-                value = None
-            elif c in WHOLE_COLUMNS and isinstance(value, float) and value.is_integer():
-                value = int(value)
-            row[c] = value
-        rows[row["run_key"]] = row
-    return rows
-
-
-def _limit(seconds: float) -> float | None:
-    """A time limit for an engine: ``None`` for no limit (``inf``)."""
-    return None if math.isinf(seconds) else float(seconds)
+    status = Status.TIMEOUT if outcome.state == "timeout" else Status.ERROR
+    return Record(run.run, Ending(status, message))
 
 
 def engine(jobs: int | None, cluster: str | None) -> Executor:
@@ -293,6 +162,9 @@ def engine(jobs: int | None, cluster: str | None) -> Executor:
     if cluster is not None:
         if jobs is not None:
             raise InputError("give either jobs (the local pool) or a cluster, not both")
+        # Imported here: Dask takes about a second to import, and only its engine needs it.
+        from benchmarks.cluster import Cluster
+
         return Cluster(cluster)
     jobs = len(usable_cpus()) if jobs is None else jobs
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
@@ -420,7 +292,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         version = provenance()["code_version"]
         keyed = version + _digest(loaded, blobs)
         notes: list[str] = []
-        fixed = validate(specs, keyed, grid_options, allow_large, notes)
+        runs = plan(specs, keyed, grid_options, timeout, allow_large, notes)
         said = executor.ready()
         for line in [*notes, *([said] if said else [])]:
             if log is not None:
@@ -442,56 +314,40 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
             except OSError as exc:
                 raise InputError(one_line(f"cannot write results to {out}: {exc}")) from None
             with store:
-                return _run_batch(executor, store, specs, fixed, (keyed, loaded, blobs), out,
-                                  suite=suite, repeats=repeats, timeout=timeout,
-                                  resume=resume, targets=targets, grid_options=grid_options,
-                                  log=log, progress=progress)
+                return _run_batch(executor, store, runs, (loaded, blobs), out, suite=suite,
+                                  repeats=repeats, timeout=timeout, resume=resume,
+                                  targets=targets, log=log, progress=progress)
         finally:
             lock.release()
 
 
-def _firsts(fixed: list[dict]) -> list[int]:
-    """For each run, the index of the first run with its ``run_key`` (itself if none)."""
-    first: dict[str, int] = {}
-    return [first.setdefault(f["run_key"], i) for i, f in enumerate(fixed)]
-
-
-def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, suite,
-               repeats, timeout, resume, targets, grid_options, log, progress) -> list[Record]:
-    """The body of :func:`run_specs` once the input is valid, the folder locked and the
-    store open; ``code`` is the run keys' version, the loaded sources and the pickled
-    cases."""
-    keyed, loaded, blobs = code
-    records: list[Record | None] = [None] * len(specs)
-    firsts = _firsts(fixed)
-    unique = [i for i, first in enumerate(firsts) if first == i]
-    finished = store.finished_keys() if resume else set()
-    skipped = [i for i in unique if fixed[i]["run_key"] in finished]
+def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, out, *,
+               suite, repeats, timeout, resume, targets, log, progress) -> list[Record]:
+    """The body of :func:`run_specs` once the input is planned, the folder locked and the
+    store open; ``code`` is the loaded sources and the pickled cases."""
+    loaded, blobs = code
+    records: list[Record | None] = [None] * len(runs)
+    todo, skipped = pending(runs, store.finished_keys() if resume else set())
     if skipped:
-        stored = _stored_rows(store.path, {fixed[i]["run_key"] for i in skipped})
+        stored = store.finished({runs[i].run.run_key for i in skipped})
         for i in skipped:
-            records[i] = Record(stored[fixed[i]["run_key"]])
+            records[i] = stored[runs[i].run.run_key]
     # A run's affinity is its problem and method: a sweep over h or rtol stays on one
     # worker, which compiles the method once for it.
-    tasks = []
-    for i in unique:
-        if records[i] is None:
-            spec = specs[i]
-            limit = _limit(spec.timeout or timeout)
-            payload = (spec, keyed, repeats, limit, grid_options, loaded, blobs)
-            # Labelled by the identity the store will hold (settings and horizon resolved).
-            tasks.append(Task(i, "run", payload, limit, identity(blank_row(spec, **fixed[i])),
-                              (spec.problem, spec.integrator)))
+    tasks = [Task(i, "run", (runs[i], repeats, loaded, blobs), runs[i].timeout,
+                  runs[i].label, (runs[i].run.problem, runs[i].run.integrator))
+             for i in todo]
+    n_unique = len(todo) + len(skipped)
     try:
         session = store.begin(suite, timing_note=executor.note(repeats))
     except sqlite3.Error as exc:  # before any run: nothing is lost
         raise InputError(one_line(f"{store.path}: cannot be written: {exc}")) from None
     bar = Progress(len(tasks) + len(targets), log, progress)
-    if len(unique) < len(specs):
-        bar.note(f"{len(specs) - len(unique)} of {len(specs)} runs repeat an earlier one "
+    if n_unique < len(runs):
+        bar.note(f"{len(runs) - n_unique} of {len(runs)} runs repeat an earlier one "
                  f"(same problem, parameters, method, options and horizon) and run once")
     if skipped:
-        bar.note(f"resuming: {len(skipped)} of {len(specs)} runs are finished in "
+        bar.note(f"resuming: {len(skipped)} of {len(runs)} runs are finished in "
                  f"{store.path} and are not run again")
     csv_path, partial = out / "runs.csv", out / "runs.partial.csv"
     failures: list[str] = []
@@ -517,7 +373,7 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
         stream["fh"].flush()
 
     def report(task: Task, outcome: Outcome) -> None:
-        record = _outcome_record(specs[task.id], fixed[task.id], task, outcome)
+        record = _outcome_record(runs[task.id], task, outcome)
         records[task.id] = record
         if not failed(partial):
             try:
@@ -534,7 +390,8 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
 
     # Studies go first, beside the runs: each is one long task, and started last it would
     # leave the other workers idle while it ends.
-    studies, report_study = _studies(store, session, targets, out, _limit(timeout), bar, fail)
+    limit = None if math.isinf(timeout) else float(timeout)
+    studies, report_study = _studies(store, session, targets, out, limit, bar, fail)
 
     def dispatch(task: Task, outcome: Outcome) -> None:
         (report_study if task.kind == "study" else report)(task, outcome)
@@ -549,7 +406,7 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
             except OSError:  # its last buffered row: runs.csv below gets every row
                 pass
         # Also when interrupted: runs.csv then lists the skipped runs and those that ended.
-        rows = [records[i].row for i in unique if records[i] is not None]
+        rows = [r.row for r in records if r is not None]
         try:
             _write_csv(csv_path, rows)
             partial.unlink(missing_ok=True)
@@ -558,7 +415,7 @@ def _run_batch(executor: Executor, store: Store, specs, fixed, code, out, *, sui
                  f"the runs that ended are in {store.path} and {partial}")
             if partial.exists() and partial.stat().st_size == 0:
                 partial.unlink()
-    records = [records[first] for first in firsts]
+    records = [records[first] for first in firsts(runs)]
     if failures:
         raise OutputError(one_line(f"not every result was written: {failures[0]}"
                                    + (f" (and {len(failures) - 1} more failures, above)"
@@ -601,7 +458,7 @@ def _studies(store: Store, session: int, targets: dict[str, str], out: Path,
             except (sqlite3.Error, OSError) as exc:
                 fail(f"{store.path}: storing the error of study {name} failed ({exc}); "
                      f"its error: {error}")
-        status = "ok" if error is None else f"error: {error}"
+        status = Status.OK if error is None else f"{Status.ERROR}: {error}"
         bar.finish(task.id, f"{task.label}: {status}")
 
     return tasks, report

@@ -37,7 +37,6 @@ import fcntl
 import logging
 import os
 import queue
-import re
 import socket
 import tempfile
 import threading
@@ -48,6 +47,7 @@ from typing import Callable, Iterable
 import distributed
 
 from benchmarks.executors import Outcome, Task, pick
+from benchmarks.plan import cluster_address
 from benchmarks.pool import STARTUP_LIMIT, Pool, timing_note, usable_cpus
 from benchmarks.records import InputError, one_line, provenance
 
@@ -163,22 +163,11 @@ def _perform(task: Task, version: str) -> Outcome:
 # The client side
 # ---------------------------------------------------------------------------------------
 
-def parse(address: str) -> tuple[int | None, str | None]:
-    """``(N, None)`` for ``local:N``, ``(None, address)`` for ``tcp://HOST:PORT``."""
-    local = re.fullmatch(r"local:(\d+)", address.strip())
-    if local and int(local.group(1)) >= 1:
-        return int(local.group(1)), None
-    if re.fullmatch(r"tcp://[^\s:/]+:\d+", address.strip()):
-        return None, address.strip()
-    raise InputError(f"cluster {address!r}: must be local:N (N >= 1 workers on this machine) "
-                     f"or tcp://HOST:PORT (a running Dask scheduler)")
-
-
 class Cluster:
     """The Dask engine (:class:`benchmarks.executors.Executor`) on ``address``."""
 
     def __init__(self, address: str):
-        self.workers, self.address = parse(address)
+        self.workers, self.address = cluster_address(address)
         self.local: distributed.LocalCluster | None = None
         self.client: distributed.Client | None = None
         self.hosts: dict[str, dict] = {}

@@ -1,16 +1,13 @@
 """One run, in one place: build the case and the integrator, time set-up and solve, measure.
 
-:func:`execute` returns a complete :class:`~benchmarks.records.Record`: the settings and
-options that ran, what the case and the method declare (``t0``, energy scale, nominal
-order, sensitivity), the work counters, the metrics (:mod:`benchmarks.metrics`), the drift
-classes of ``|g|`` and ``|H - H0|`` (:mod:`benchmarks.drift`), the linear solver and the
-sampling. A run that fails numerically is ``failed`` with the method's message, a run that
-raises is ``error`` with the exception (and the ``file:line`` in user code where it
-arose), and neither raises here.
-
-:func:`known` gives the columns fixed before anything runs, and the run key; the batch
-computes them while validating, so that a run killed at its time limit is recorded with
-them too.
+:func:`execute` takes a :class:`~benchmarks.plan.PlannedRun` (everything known before the
+run, its ``run_key`` included, fixed by the planner) and returns a complete
+:class:`~benchmarks.records.Record`: the planned :class:`~benchmarks.records.Run` part,
+how the run ended, its timing, its work counters, its metrics (:mod:`benchmarks.metrics`)
+with the drift classes of ``|g|`` and ``|H - H0|`` (:mod:`benchmarks.drift`), the linear
+solver and the sampling. A run that fails numerically is ``failed`` with the method's
+message, a run that raises is ``error`` with the exception (and the ``file:line`` in user
+code where it arose), and neither raises here.
 """
 
 from __future__ import annotations
@@ -20,6 +17,7 @@ import json
 import math
 import statistics
 import time
+from dataclasses import fields, replace
 from typing import Callable
 
 import numpy as np
@@ -29,13 +27,15 @@ import problems
 from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
-from benchmarks.records import Record, RunSpec, blank_row, provenance, run_key
-from integrators.base import COUNTERS, ERROR, FAILED, OK, Grid, Trajectory
-from problems.spec import parse_value, split_spec
+from benchmarks.plan import PlannedRun, plan
+from benchmarks.records import (Ending, Metrics, Record, RunSpec, Status, Timing, Work,
+                                provenance)
+from integrators.base import COUNTERS, Grid, Trajectory
+from problems.spec import ProblemSpec
 
 
 @functools.lru_cache(maxsize=8)
-def _case(problem: str):
+def _case(problem: ProblemSpec):
     # Cases are immutable: the runs of a worker share them, and with them the compiled
     # functions keyed on their Mechanics (a step-size or tolerance sweep compiles once).
     return problems.make(problem)
@@ -46,57 +46,23 @@ def forget_cases() -> None:
     _case.cache_clear()
 
 
-def build(spec: RunSpec):
-    """The case and the integrator of a run spec (raises on bad input)."""
-    case = _case(spec.problem)
-    if spec.t_end is not None:
-        case = case.with_t_end(spec.t_end)
-    integrator = integrators.make(spec.integrator, h=spec.h, rtol=spec.rtol, atol=spec.atol)
-    return case, integrator
-
-
-def known(spec: RunSpec, case, integ, grid_options: dict | None, version: str) -> dict:
-    """The columns fixed by the case and the integrator before anything runs, and the
-    run's ``run_key`` (:func:`benchmarks.records.run_key`) for code version ``version``."""
-    opts = integ.options()
-    name, raw = split_spec(spec.problem)
-    arguments = problems.parameters(name)
-    arguments.update({k: parse_value(v, arguments[k], k) for k, v in raw.items()})
-    resolved = {"problem": name, "arguments": arguments, "params": dict(case.params),
-                "integrator": split_spec(spec.integrator)[0], "options": opts,
-                "t_end": case.t_end, "grid": grid_options or {}}
-    return dict(t_end=case.t_end, options=json.dumps(opts, default=str),
-                params=json.dumps(case.params, default=str), h=opts.get("h"),
-                rtol=opts.get("rtol"), atol=opts.get("atol"), t0=case.t0,
-                energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
-                family=integ.family,
-                sensitive=int(bool(case.system.sensitive)),
-                run_key=run_key(resolved, version))
-
-
-
-
-def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
-            repeat_budget: float = 10.0, grid_options: dict | None = None,
+def execute(run: PlannedRun | RunSpec, repeats: int = 3, repeat_budget: float = 10.0,
             deadline: float | None = None,
             on_phase: Callable[[str], None] | None = None) -> Record:
-    """Run ``spec``: set-up once, solve up to ``repeats`` times, measure the last solve.
+    """Run ``run``: set-up once, solve up to ``repeats`` times, measure the last solve.
 
     Parameters
     ----------
-    spec : RunSpec
-        The run.
-    version : str, optional
-        The code version its run key is computed with (the batch's, so that a run done by
-        a worker elsewhere carries the key the batch resumes by); default: this code's.
+    run : PlannedRun or RunSpec
+        The planned run (as the batch's workers receive it); a :class:`RunSpec` is
+        planned here first (:func:`benchmarks.plan.plan`, with this code's version), for
+        a single run from a test or a notebook.
     repeats : int
         Timed solves at most; ``wall_s`` is their median, ``wall_min_s`` and ``wall_max_s``
         their spread.
     repeat_budget : float
         Repeats stop once their total passes this many seconds, so long runs are solved
         once or twice.
-    grid_options : dict, optional
-        :class:`~integrators.base.Grid` options (windows, samples).
     deadline : float, optional
         A ``time.monotonic`` time (the run's time limit): a repeat is not started when it
         would likely end after it. Every repeat of a deterministic method gives the same
@@ -104,23 +70,24 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
     on_phase : callable, optional
         Told what the run is doing (for the message of a run killed at its time limit).
     """
+    if isinstance(run, RunSpec):
+        run = plan([run], provenance()["code_version"])[0]
     phase = on_phase or (lambda text: None)
+    timing = Timing()
     try:
         phase("building the case")
-        case, integ = build(spec)
-        version = version or provenance()["code_version"]
-        row = blank_row(spec, **known(spec, case, integ, grid_options, version))
-    except Exception as exc:  # bad input or a defect: recorded, never fatal to the suite
-        return Record(blank_row(spec, status=ERROR, message=explain(exc)))
-    try:
-        grid = Grid(case.t0, case.t_end, **(grid_options or {}))
+        case = _case(run.problem)
+        if run.horizon is not None:
+            case = case.with_t_end(run.horizon)
+        integ = integrators.make(run.integrator)
+        grid = Grid(case.t0, case.t_end, **dict(run.grid))
         phase("set-up")
         start = time.perf_counter()
         solve = integ.prepare(case, grid)
-        row["setup_s"] = time.perf_counter() - start
+        timing = Timing(setup_s=time.perf_counter() - start)
         times: list[float] = []
         while True:
-            phase(f"solve (repeat {len(times) + 1}; set-up took {row['setup_s']:.3g} s)")
+            phase(f"solve (repeat {len(times) + 1}; set-up took {timing.setup_s:.3g} s)")
             start = time.perf_counter()
             traj = solve()
             times.append(time.perf_counter() - start)
@@ -131,12 +98,12 @@ def execute(spec: RunSpec, version: str | None = None, repeats: int = 3,
             if deadline is not None and time.monotonic() + 2.0 * times[-1] > deadline:
                 break
         phase("measuring")
-        row.update(wall_s=statistics.median(times), wall_min_s=min(times),
-                   wall_max_s=max(times), repeats=len(times))
-        row.update(trajectory_columns(case, traj))
+        timing = replace(timing, wall_s=statistics.median(times), repeats=len(times),
+                         wall_min_s=min(times), wall_max_s=max(times),
+                         callback_s=_given(traj.extra.get("callback_s")))
+        return measure(run, case, traj, timing)
     except Exception as exc:  # a defect in the method or the user's functions
-        return Record({**row, "status": ERROR, "message": explain(exc)})
-    return Record(row, traj.windows, traj.samples)
+        return Record(run.run, Ending(Status.ERROR, explain(exc)), timing)
 
 
 def _non_finite(traj: Trajectory) -> tuple[str, float | None] | None:
@@ -170,24 +137,32 @@ def growth(case, traj: Trajectory) -> dict[str, str | None]:
             "energy_growth": energy.label() if energy is not None else None}
 
 
-def trajectory_columns(case, traj: Trajectory) -> dict:
-    """The columns that come from the trajectory: metrics, work, state, drift classes."""
-    metrics = summarize(case, traj)
+def _given(value):
+    """``value`` as a plain Python value, ``None`` where it is missing (None or NaN)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    return None if isinstance(value, float) and math.isnan(value) else value
+
+
+def measure(run: PlannedRun, case, traj: Trajectory, timing: Timing) -> Record:
+    """The record of a run from its trajectory: metrics, work, final state, drift classes.
+
+    A trajectory that claims success but holds a value that is not finite is ``failed``.
+    """
+    metrics = {k: _given(v) for k, v in summarize(case, traj).items()}
     inv = {k[len("max_inv:"):]: v for k, v in metrics.items() if k.startswith("max_inv:")}
-    cols = {k: v for k, v in metrics.items() if not k.startswith("max_inv:")}
-    cols.update({c: traj.counts.get(c, 0) for c in COUNTERS})
-    cols.update(
-        status=traj.status, message=traj.message, t_final=traj.t_final,
-        q_final=json.dumps([float(x) for x in traj.q_final]),
-        v_final=json.dumps([float(x) for x in traj.v_final]),
-        invariant_errors=json.dumps(inv) if inv else "",
-        sampling=traj.sampling, fail_step=traj.fail_step, fail_time=traj.fail_time,
-        callback_s=traj.extra.get("callback_s"), linear_solver=traj.linear_solver,
-        pattern_nnz=traj.pattern_nnz,
-    )
-    cols.update(growth(case, traj))
-    if traj.status == OK and (bad := _non_finite(traj)) is not None:
+    ending = Ending(status=traj.status, message=traj.message, t_final=_given(traj.t_final),
+                    q_final=json.dumps([float(x) for x in traj.q_final]),
+                    v_final=json.dumps([float(x) for x in traj.v_final]),
+                    fail_step=_given(traj.fail_step), fail_time=_given(traj.fail_time),
+                    sampling=traj.sampling)
+    if traj.status == Status.OK and (bad := _non_finite(traj)) is not None:
         what, when = bad
-        cols.update(status=FAILED, fail_time=when,
-                    message=f"the method reported success but {what}")
-    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in cols.items()}
+        ending = replace(ending, status=Status.FAILED, fail_time=when,
+                         message=f"the method reported success but {what}")
+    work = Work(**{c: _given(traj.counts.get(c, 0)) for c in COUNTERS},
+                linear_solver=traj.linear_solver, pattern_nnz=_given(traj.pattern_nnz))
+    measured = {f.name: metrics.get(f.name) for f in fields(Metrics)}
+    measured.update(invariant_errors=json.dumps(inv) if inv else "", **growth(case, traj))
+    return Record(run.run, ending, timing, work, Metrics(**measured),
+                  traj.windows, traj.samples)

@@ -140,17 +140,24 @@ def use(loads: Iterable[str] = (), cases: dict[str, bytes] | None = None) -> Non
         if _provided.get(name) != digest:
             case = cloudpickle.loads(blob)
             problems.REGISTRY.pop(name, None)
-            problems.register(name, origin="Python API")(lambda case=case: case)
+            problems.register(name, origin="Python API")(_factory(case))
             _provided[name] = digest
             forget_cases()
 
 
+def _factory(case):
+    """A problem factory without parameters that gives ``case``: the case is all there is
+    to a problem of the Python API."""
+    return lambda: case
+
+
 def _run_task(payload, phase: Callable[[str], None]):
-    spec, version, repeats, time_limit, grid_options, loads, cases = payload
+    """Execute a planned run (:class:`~benchmarks.plan.PlannedRun`) as it is, with the user
+    code it needs."""
+    run, repeats, loads, cases = payload
     use(loads, cases)
-    deadline = time.monotonic() + time_limit if time_limit is not None else None
-    return execute(spec, version, repeats=repeats, grid_options=grid_options,
-                   deadline=deadline, on_phase=phase)
+    deadline = time.monotonic() + run.timeout if run.timeout is not None else None
+    return execute(run, repeats=repeats, deadline=deadline, on_phase=phase)
 
 
 def _study_task(payload, phase: Callable[[str], None]):

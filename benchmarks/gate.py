@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 from benchmarks.drift import SEVERITY, kind_of
-from benchmarks.records import one_line
+from benchmarks.records import Status, one_line
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,7 @@ def compare_metric(metric: str, base: float | None,
 
 
 #: Statuses of runs that completed their horizon.
-FINISHED = ("ok",)
+FINISHED = (Status.OK,)
 
 
 #: The recorded drift classes the gate compares (runs.csv columns).

@@ -1,11 +1,14 @@
 """What every layer agrees on about a run: its spec, its record, its identity, its provenance.
 
 - :class:`RunSpec`: one run as asked for (problem spec, integrator spec, setting, horizon);
-- :class:`Record`: one run as it ended, complete: its ``runs.csv`` row (:data:`COLUMNS`),
-  its drift series and its sampled states. Everything a later stage needs to know about a
-  run (nominal order, sensitivity, energy scale, ``t0``, the linear solver, the sampling,
-  the drift classes) is a column, filled where the run happens, so that the store and the
-  reports never rebuild a problem or an integrator;
+- :class:`Record`: one run as it ended, complete, in named parts: what ran (:class:`Run`,
+  known before it starts), how it ended (:class:`Ending`), its :class:`Timing`,
+  :class:`Work` and :class:`Metrics`, its drift series and its sampled states. Everything
+  a later stage needs to know about a run (nominal order, sensitivity, energy scale,
+  ``t0``, the linear solver, the sampling, the drift classes) is in it, filled where the
+  run happens, so that the store and the reports never rebuild a problem or an
+  integrator; :attr:`Record.row` is its ``runs.csv`` row (:data:`COLUMNS`), the one
+  conversion the store and ``runs.csv`` share;
 - :func:`identity`: what names a run across invocations and commits (problem, integrator,
   setting, horizon), the one text that the progress log, the drift gate and the report use;
   :func:`run_key` adds the fully resolved parameters and options and the code version, for
@@ -22,6 +25,7 @@ This module imports neither JAX nor an integrator nor a problem.
 from __future__ import annotations
 
 import argparse
+import enum
 import functools
 import hashlib
 import json
@@ -29,7 +33,7 @@ import math
 import os
 import platform
 import subprocess
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import metadata
 from pathlib import Path
 
@@ -74,6 +78,21 @@ CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
 #: Distributions whose versions are recorded with every invocation.
 PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-sundae",
             "pandas", "matplotlib", "dask", "distributed")
+
+
+class Status(enum.StrEnum):
+    """How a run ended (design notes, section 6): the members of
+    :class:`integrators.base.Status`, whose values runs.csv and the store hold.
+
+    Defined here as well because the store and the reports read records without importing
+    an integrator (and with it JAX); ``tests/test_store.py`` holds the two equal.
+    """
+
+    OK = "ok"
+    FAILED = "failed"
+    TIMEOUT = "timeout"
+    ERROR = "error"
+    SKIPPED = "skipped"
 
 
 class InputError(ValueError):
@@ -133,15 +152,18 @@ def identity(row) -> str:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run: a problem spec, an integrator spec and the settings that vary in sweeps.
+    """One run as asked for: a problem, an integrator, the settings that vary in sweeps.
 
+    ``problem`` and ``integrator`` are spec strings or, where the input was read
+    (:func:`benchmarks.plan.expand`), the resolved
+    :class:`~problems.spec.ProblemSpec` and :class:`~problems.spec.IntegratorSpec`.
     ``timeout`` is the run's time limit in seconds (``None``: the batch default); ``origin``
     says where the run was asked for (a suite file and line), for error messages. Neither
     takes part in comparisons.
     """
 
-    problem: str
-    integrator: str
+    problem: object
+    integrator: object
     h: float | None = None
     rtol: float | None = None
     atol: float | None = None
@@ -154,22 +176,134 @@ class RunSpec:
         return identity(self)
 
 
-@dataclass
+@dataclass(frozen=True)
+class Run:
+    """What ran: everything fixed before the run starts (:mod:`benchmarks.plan` fills it).
+
+    ``problem`` and ``integrator`` are the specs as written; ``h``, ``rtol``, ``atol`` the
+    integrator's resolved options (``None`` where it has none) and ``t_end`` the resolved
+    horizon; ``options`` and ``params`` JSON of every option and physical parameter; then
+    what the case and the method declare, and the ``run_key`` (:func:`run_key`).
+    """
+
+    problem: str
+    integrator: str
+    h: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    t_end: float | None = None
+    options: str | None = None
+    params: str | None = None
+    run_key: str | None = None
+    t0: float | None = None
+    energy_scale: float | None = None
+    nominal_order: int | None = None
+    sensitive: int | None = None
+    family: str | None = None
+
+
+@dataclass(frozen=True)
+class Ending:
+    """How a run ended: its :class:`Status` and message, where it stopped (``fail_step``,
+    ``fail_time``), its final state (``q_final``, ``v_final``: JSON lists) and how its
+    metrics were sampled."""
+
+    status: Status
+    message: str | None = None
+    t_final: float | None = None
+    q_final: str | None = None
+    v_final: str | None = None
+    fail_step: int | None = None
+    fail_time: float | None = None
+    sampling: str | None = None
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Wall times in seconds: set-up, the median of the timed solves (``wall_s``), their
+    spread and number, and the time spent in recording callbacks."""
+
+    wall_s: float | None = None
+    setup_s: float | None = None
+    repeats: int | None = None
+    wall_min_s: float | None = None
+    wall_max_s: float | None = None
+    callback_s: float | None = None
+
+
+@dataclass(frozen=True)
+class Work:
+    """The work counters (:data:`integrators.base.COUNTERS`), the linear solver that ran
+    and the number of entries of the pattern it factorised."""
+
+    n_steps: int | None = None
+    n_rejected: int | None = None
+    n_f_evals: int | None = None
+    n_jac_evals: int | None = None
+    n_newton: int | None = None
+    n_lin_solves: int | None = None
+    linear_solver: str | None = None
+    pattern_nnz: int | None = None
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """The metrics (design notes, section 5; :mod:`benchmarks.metrics`), the errors of the
+    declared invariants (JSON), the drift classes (:mod:`benchmarks.drift`) and the
+    accuracy of the reference the final error was measured against."""
+
+    max_pos_residual: float | None = None
+    max_vel_residual: float | None = None
+    max_energy_error: float | None = None
+    rel_energy_error: float | None = None
+    final_state_error: float | None = None
+    scd: float | None = None
+    invariant_errors: str | None = None
+    pos_growth: str | None = None
+    energy_growth: str | None = None
+    reference_floor: float | None = None
+
+
+#: The parts of a record, by field name of :class:`Record`: each column of :data:`COLUMNS`
+#: is a field of one of them.
+PARTS = {"run": Run, "ending": Ending, "timing": Timing, "work": Work, "metrics": Metrics}
+
+
+@dataclass(frozen=True)
 class Record:
-    """A finished run: its ``runs.csv`` row and its drift series and samples."""
+    """A finished run, complete: what ran, how it ended, its timing, work and metrics, its
+    drift series and its sampled states. Missing values are ``None``.
 
-    row: dict
-    windows: dict[str, np.ndarray] = field(default_factory=dict)
-    samples: dict[str, np.ndarray] = field(default_factory=dict)
+    :attr:`row` is its ``runs.csv`` row, the one conversion that the store and
+    ``runs.csv`` both use; :meth:`from_row` reads a stored row back.
+    """
 
+    run: Run
+    ending: Ending
+    timing: Timing = Timing()
+    work: Work = Work()
+    metrics: Metrics = Metrics()
+    windows: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    samples: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
 
-def blank_row(spec: RunSpec, **values) -> dict:
-    """A ``runs.csv`` row of ``spec`` with ``values`` and nothing else filled in."""
-    row = dict.fromkeys(COLUMNS)
-    row.update(problem=spec.problem, integrator=spec.integrator, h=spec.h, rtol=spec.rtol,
-               atol=spec.atol, t_end=spec.t_end)
-    row.update(values)
-    return row
+    @property
+    def row(self) -> dict:
+        """The ``runs.csv`` row: every column of :data:`COLUMNS`, in order."""
+        values = {}
+        for name in PARTS:
+            values.update(asdict(getattr(self, name)))
+        return {c: values[c] for c in COLUMNS}
+
+    @classmethod
+    def from_row(cls, row, windows=None, samples=None) -> "Record":
+        """The record of a ``runs.csv`` or stored row (a mapping; absent columns are
+        ``None``)."""
+        parts = {name: part(**{f.name: row.get(f.name) for f in fields(part)})
+                 for name, part in PARTS.items()}
+        status = parts["ending"].status
+        parts["ending"] = replace(parts["ending"],
+                                  status=None if status is None else Status(status))
+        return cls(**parts, windows=dict(windows or {}), samples=dict(samples or {}))
 
 
 def _plain(value):

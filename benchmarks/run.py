@@ -45,10 +45,9 @@ from pathlib import Path
 import integrators
 import problems
 from benchmarks import suites
-from benchmarks.batch import expand, run_specs
 from benchmarks.executors import load_plugins
+from benchmarks.plan import expand
 from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
-from reports import build as build_report
 from studies import STUDIES
 
 #: Exit status of an interrupted invocation.
@@ -198,6 +197,11 @@ def main(argv=None) -> int:
     try:
         load_plugins()
         runs, options, targets = plan(args)
+        # The engines and the report stage are imported once the input is read: --list
+        # and a bad command line or suite file need neither.
+        from benchmarks.batch import run_specs
+        from reports import build as build_report
+
         records = run_specs(runs, args.out, args.jobs, resume=args.resume,
                             allow_large=args.allow_large, **options)
     except (InputError, Interrupted) as exc:

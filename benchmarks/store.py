@@ -1,6 +1,6 @@
 """The embedded results store: SQLite (WAL), appended to by every invocation.
 
-Schema (version 2):
+Schema (version 3):
 
 - ``sessions``: one row per invocation, with provenance (suite, start time, git commit and
   dirty flag, machine, Python and package versions, how wall times were kept honest);
@@ -15,9 +15,10 @@ Schema (version 2):
   report section and name.
 
 Each run is committed on its own, so a run that finished is never lost when a later one
-crashes or the process is killed. Columns that ``runs.csv`` gains later are added to an
-existing file when a writer opens it; older schema versions are migrated (in place by a
-writer, in memory by a reader, which never modifies the file).
+crashes or the process is killed. Older schema versions are migrated (in place by a
+writer, in memory by a reader, which never modifies the file), so every reader sees the
+current schema and data whatever code wrote them: nothing downstream asks how old a
+store is.
 
 Identity and integrity: the file carries SQLite's ``application_id``
 (:data:`APPLICATION_ID`) and the schema version in ``user_version``. Every open, by a
@@ -42,7 +43,6 @@ report stage stays light.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sqlite3
 import tempfile
@@ -54,12 +54,12 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.files import new_file_mode
-from benchmarks.records import COLUMNS, TEXT_COLUMNS, Record, provenance
+from benchmarks.records import COLUMNS, TEXT_COLUMNS, WHOLE_COLUMNS, Record, Status, provenance
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 STORE_NAME = "driftbench.sqlite"
 #: Statuses of runs that a resumed suite must run again.
-UNFINISHED = ("error", "timeout")
+UNFINISHED = (Status.ERROR, Status.TIMEOUT)
 #: Session columns joined onto every run by :func:`load_runs` (stored name -> loaded name).
 SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha": "commit",
                    "dirty": "dirty", "machine": "machine", "python": "python",
@@ -149,12 +149,34 @@ def _v1_to_v2(db: sqlite3.Connection) -> None:
     db.execute("PRAGMA user_version = 2")
 
 
-#: Columns of version 2 that files written while it was developed may lack; a writer adds
-#: them (and any ``runs.csv`` column the file lacks), readers do without.
-LATE_COLUMNS = {"sessions": {"timing_note": "TEXT"}, "runs": {"recorded": "REAL"}}
+def _v2_to_v3(db: sqlite3.Connection) -> None:
+    """Version 2 -> 3: every column, every whole number an integer, every timing spread.
+
+    Files of version 2 were written by code that knew fewer ``runs.csv`` columns (and,
+    while version 2 was developed, fewer session columns): the columns they lack are added,
+    empty. Whole-number columns hold integers (a count read back as ``10.0`` would be
+    written to ``runs.csv`` as such). Runs recorded before the spread of their timed solves
+    was get it from their one known time: the median of one solve, which is how the report
+    showed them.
+    """
+    wanted = {"sessions": {"timing_note": "TEXT"},
+              "runs": {"recorded": "REAL", **{c: "" for c in COLUMNS}}}
+    for table, columns in wanted.items():
+        have = set(_table_columns(db, table))
+        for column, kind in columns.items():
+            if column not in have:
+                db.execute(f'ALTER TABLE {table} ADD COLUMN "{column}" {kind}')
+    for column in WHOLE_COLUMNS:
+        whole = f'CAST("{column}" AS INTEGER)'
+        db.execute(f'UPDATE runs SET "{column}" = {whole} '
+                   f'WHERE typeof("{column}") = \'real\' AND "{column}" = {whole}')
+    db.execute("UPDATE runs SET wall_min_s = wall_s, wall_max_s = wall_s, repeats = 1 "
+               "WHERE wall_s IS NOT NULL AND (wall_min_s IS NULL OR wall_max_s IS NULL)")
+    db.execute("PRAGMA user_version = 3")
+
 
 #: version -> the function that upgrades a database of that version by one.
-MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2}
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3}
 
 
 def _version(db: sqlite3.Connection) -> int:
@@ -339,16 +361,9 @@ class Store:
         # of the process; only a power loss may drop the last ones.
         self.db.execute("PRAGMA synchronous=NORMAL")
         migrate(self.db, str(self.path))
-        wanted = {"sessions": LATE_COLUMNS["sessions"],
-                  "runs": {**LATE_COLUMNS["runs"], **{c: "" for c in self.columns}}}
-        with self.db:
-            if app != APPLICATION_ID:
+        if app != APPLICATION_ID:
+            with self.db:
                 self.db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            for table, columns in wanted.items():
-                have = set(_table_columns(self.db, table))
-                for column, kind in columns.items():
-                    if column not in have:
-                        self.db.execute(f'ALTER TABLE {table} ADD COLUMN "{column}" {kind}')
 
     def close(self) -> None:
         self.db.close()
@@ -380,7 +395,7 @@ class Store:
         with self.db:
             cur = self.db.execute(
                 f"INSERT INTO runs (session, recorded, {cols}) VALUES (?, ?, {marks})",
-                (session, time.time(), *(_sql(record.row.get(c)) for c in self.columns)))
+                (session, time.time(), *record.row.values()))
             run = cur.lastrowid
             arrays = {f"window:{k}": v for k, v in record.windows.items()}
             arrays.update({f"sample:{k}": v for k, v in record.samples.items()})
@@ -414,11 +429,8 @@ class Store:
     def finished_keys(self) -> set[str]:
         """``run_key`` of every stored run that a resumed suite need not run again.
 
-        A run is finished unless its status is ``error`` or ``timeout``; an empty set while
-        ``runs.csv`` has no ``run_key`` column.
+        A run is finished unless its status is ``error`` or ``timeout``.
         """
-        if "run_key" not in _table_columns(self.db, "runs"):
-            return set()
         marks = ", ".join("?" for _ in UNFINISHED)
         rows = self.db.execute(
             f"SELECT DISTINCT run_key FROM runs WHERE run_key IS NOT NULL "
@@ -426,13 +438,19 @@ class Store:
         return {r[0] for r in rows}
 
 
-def _sql(value):
-    """A value SQLite can hold: numpy scalars become Python numbers, NaN becomes NULL."""
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    return value
+    def finished(self, keys: set[str]) -> dict[str, Record]:
+        """The latest finished stored run of each of ``keys``, as a :class:`Record`
+        without its series (what ``runs.csv`` of a resumed batch lists)."""
+        cols = ", ".join(f'"{c}"' for c in self.columns)
+        marks = ", ".join("?" for _ in UNFINISHED)
+        cursor = self.db.execute(
+            f"SELECT {cols} FROM runs WHERE status NOT IN ({marks}) ORDER BY id", UNFINISHED)
+        latest = {}
+        for values in cursor:
+            row = dict(zip(self.columns, values))
+            if row["run_key"] in keys:
+                latest[row["run_key"]] = Record.from_row(row)
+        return latest
 
 
 # --------------------------------------------------------------------------- readers
@@ -459,25 +477,19 @@ def _reader(db) -> sqlite3.Connection:
 def load_runs(db) -> pd.DataFrame:
     """Every stored run with its session's provenance, one row per run.
 
-    Columns: ``run_id``, ``session``, ``recorded``, every stored ``runs.csv`` column
-    (``sensitive``: 1 for a chaotic problem, 0 if not, missing if unknown, as for every
-    column a file written by older code lacks), and ``suite``, ``session_started``,
-    ``commit``, ``dirty``, ``machine``, ``python``, ``versions``, ``timing_note`` from the
-    session.
+    Columns: ``run_id``, ``session``, ``recorded``, every ``runs.csv`` column
+    (``sensitive``: 1 for a chaotic problem, 0 if not, missing if unknown), and ``suite``,
+    ``session_started``, ``commit``, ``dirty``, ``machine``, ``python``, ``versions``,
+    ``timing_note`` from the session. Missing values are NaN (in number columns) or None.
     """
     con = _reader(db)
     try:
-        # Files written while version 2 was being developed may lack a session column.
-        have = set(_table_columns(con, "sessions"))
-        provenance_cols = ", ".join(f's."{k}" AS "{v}"' if k in have else f'NULL AS "{v}"'
-                                    for k, v in SESSION_COLUMNS.items())
+        provenance_cols = ", ".join(f's."{k}" AS "{v}"' for k, v in SESSION_COLUMNS.items())
         frame = pd.read_sql_query(
             f"SELECT r.*, {provenance_cols} FROM runs r LEFT JOIN sessions s "
             f"ON r.session = s.id ORDER BY r.id", con)
     finally:
         con.close()
-    # A file written by older code lacks the columns added since: they read as missing.
-    frame = frame.assign(**{c: None for c in COLUMNS if c not in frame.columns})
     for column in frame.columns:
         if column in TEXT or frame[column].dtype != object:
             continue  # pandas already typed it (ids stay integers)

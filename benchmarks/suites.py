@@ -40,22 +40,25 @@ of the wrong type or out of range, or names an unknown problem, integrator or st
 refused with one line that names the file, the line and what is wrong.
 
 Entries that repeat a run (the same problem, parameters, method, options and horizon, in
-one group or in two) are run once (:mod:`benchmarks.batch`).
+one group or in two) are run once (:func:`benchmarks.plan.pending`).
+
+Reading a suite resolves its specs (:mod:`benchmarks.plan`) and imports no engine.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import integrators
 import problems
-from benchmarks.batch import expand
-from benchmarks.cluster import parse as parse_cluster
+from benchmarks.plan import cluster_address, expand
 from benchmarks.records import InputError, RunSpec
-from problems.spec import SpecError, split_spec, suggest
+from problems.spec import SpecError, suggest
 from studies import STUDIES
 
 SUITE_DIR = Path(__file__).parent / "suites"
@@ -210,13 +213,12 @@ def load(name: str) -> Suite:
     cluster = data.get("cluster")
     if cluster is not None:
         try:
-            parse_cluster(cluster)
+            cluster_address(cluster)
         except InputError as exc:
             fail(_line_of(text, "cluster"), str(exc))
     if not groups and not studies:
         fail(0, "no [[group]] table and no studies: a suite needs at least one")
     spans = _group_spans(text)
-    known = problems.names()
     runs: list[RunSpec] = []
     for k, group in enumerate(groups):
         span = spans[k] if k < len(spans) and len(spans) == len(groups) else None
@@ -230,17 +232,16 @@ def load(name: str) -> Suite:
             if required not in group:
                 fail(span[0] if span else 0, f"[[group]] {k + 1} lacks the required key "
                                              f"{required!r}")
+        origin = f"{path}:{span[0]} ([[group]] {k + 1})" if span else f"{path} ([[group]] {k + 1})"
+        resolved = []
         for spec in group["problems"]:
             try:
-                problem = split_spec(spec)[0]
+                resolved.append(problems.resolve(spec, origin))
             except SpecError as exc:
                 fail(line_of("problems"), f"{exc}{where}")
-            if problem not in known:
-                fail(line_of("problems"), f"unknown problem {problem!r}{where}"
-                                          f"{suggest(problem, known)}; known: {', '.join(known)}")
-        origin = f"{path}:{span[0]} ([[group]] {k + 1})" if span else f"{path} ([[group]] {k + 1})"
         try:
-            runs.extend(expand(group["problems"], group["integrators"],
+            methods = [integrators.resolve(spec, origin) for spec in group["integrators"]]
+            runs.extend(expand(resolved, methods,
                                [float(x) for x in group.get("h", [])],
                                [float(x) for x in group.get("rtol", [])],
                                [float(x) for x in group.get("atol", [])],
@@ -251,8 +252,7 @@ def load(name: str) -> Suite:
             fail(line_of("integrators"), f"[[group]] {k + 1}: {exc}")
     timeout = float(data["timeout"]) if "timeout" in data else None
     if timeout is not None:
-        runs = [r if r.timeout is not None else
-                RunSpec(r.problem, r.integrator, r.h, r.rtol, r.atol, r.t_end, timeout, r.origin)
+        runs = [r if r.timeout is not None else dataclasses.replace(r, timeout=timeout)
                 for r in runs]
     return Suite(path.stem, data.get("description", ""), runs, data.get("repeats"),
                  timeout, studies, float(data["budget"]) if "budget" in data else None,

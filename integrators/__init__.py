@@ -2,6 +2,8 @@
 
 ``make("lobatto3ab3:newton_tol=1e-12", h=0.05)`` builds the frozen dataclass of the key with
 the preset options, the ``key=value`` options and the keyword overrides, in that order.
+:func:`resolve` parses a spec string once into an :class:`~problems.spec.IntegratorSpec`,
+which :func:`make` builds from as it is.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import importlib
 
 from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
 from problems.source import located
-from problems.spec import SpecError, parse_value, split_spec, suggest
+from problems.spec import IntegratorSpec, SpecError, parse_value, split_spec, suggest
 
 #: key -> ("module:Class", preset options)
 REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
@@ -43,31 +45,53 @@ def cls_of(key: str) -> type[Integrator]:
     return getattr(importlib.import_module(module), name)
 
 
-def make(spec: str, **overrides) -> Integrator:
-    """Build the integrator named by ``spec`` (``key`` or ``key:opt=value,...``).
+def resolve(spec: str | IntegratorSpec, origin: str = "") -> IntegratorSpec:
+    """The :class:`~problems.spec.IntegratorSpec` of ``spec`` (``key`` or
+    ``key:opt=value,...``): the key checked against the registry, every option given
+    checked against the class's fields and typed as its default. A resolved spec is
+    returned as it is.
 
-    Overrides (``h``, ``rtol``, ``atol``) that the class does not have are ignored, so the
-    runner can pass ``h`` to every method and only fixed-step ones take it.
+    Raises
+    ------
+    SpecError
+        An unknown key or option, or a value of the wrong type.
     """
+    if isinstance(spec, IntegratorSpec):
+        return spec
     key, raw = split_spec(spec)
     if key not in REGISTRY:
         raise SpecError(f"unknown integrator {key!r}{suggest(key, REGISTRY)}; "
                         f"known: {', '.join(sorted(REGISTRY))}")
-    cls = cls_of(key)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    options = dict(REGISTRY[key][1])
+    fields = {f.name: f for f in dataclasses.fields(cls_of(key))}
+    preset = REGISTRY[key][1]
+    options = {}
     for name, text in raw.items():
         if name not in fields:
             raise SpecError(located(f"integrator {key!r} has no option {name!r}"
-                                    f"{suggest(name, fields)}; options: {', '.join(fields)}", cls))
-        default = options.get(name, fields[name].default)
+                                    f"{suggest(name, fields)}; options: {', '.join(fields)}",
+                                    cls_of(key)))
+        default = preset.get(name, fields[name].default)
         options[name] = parse_value(text, default, f"integrator {key!r}, option {name!r}")
+    return IntegratorSpec(key, tuple(options.items()), spec, origin)
+
+
+def make(spec: str | IntegratorSpec, **overrides) -> Integrator:
+    """Build the integrator of ``spec`` (a spec string, or resolved by :func:`resolve`):
+    the key's preset options, the spec's options, then ``overrides``.
+
+    Overrides (``h``, ``rtol``, ``atol``) that the class does not have are ignored, so the
+    runner can pass ``h`` to every method and only fixed-step ones take it.
+    """
+    spec = resolve(spec)
+    cls = cls_of(spec.name)
+    fields = {f.name for f in dataclasses.fields(cls)}
+    options = {**REGISTRY[spec.name][1], **spec.kwargs}
     options.update({k: v for k, v in overrides.items() if k in fields and v is not None})
     integrator = cls(**options)
     try:
         integrator.check()
     except ValueError as exc:
-        raise SpecError(located(f"integrator {spec!r}: {exc}", cls)) from None
+        raise SpecError(located(f"integrator {str(spec)!r}: {exc}", cls)) from None
     return integrator
 
 

@@ -33,7 +33,7 @@ from typing import Callable
 
 from problems.case import Case, InconsistentInitialValues, Reference, make_case  # noqa: F401
 from problems.mechanics import Mechanics, System  # noqa: F401
-from problems.spec import SpecError, parse_value, split_spec, suggest
+from problems.spec import ProblemSpec, SpecError, parse_value, split_spec, suggest
 
 #: The public problem-authoring API.
 __all__ = ["System", "make_case", "Reference", "Case", "register", "load"]
@@ -129,55 +129,63 @@ def parameters(name: str) -> dict[str, object]:
     return {k: p.default for k, p in sig.parameters.items()}
 
 
-def make(spec: str, **overrides) -> Case:
-    """Build the case named by ``spec`` (``name`` or ``name:key=value,...``)."""
+def resolve(spec: str | ProblemSpec, origin: str = "") -> ProblemSpec:
+    """The :class:`~problems.spec.ProblemSpec` of ``spec`` (``name`` or
+    ``name:key=value,...``): the name checked against the registry, every parameter typed
+    as its default, the defaults filled in. A resolved spec is returned as it is.
+
+    Raises
+    ------
+    SpecError
+        An unknown name or parameter, or a value of the wrong type.
+    """
+    if isinstance(spec, ProblemSpec):
+        return spec
     _load()
     name, raw = split_spec(spec)
     if name not in REGISTRY:
         raise SpecError(f"unknown problem {name!r}{suggest(name, REGISTRY)}; "
                         f"known: {', '.join(sorted(REGISTRY))}")
-    defaults = parameters(name)
-    kwargs = {}
+    arguments = parameters(name)
     for key, text in raw.items():
-        if key not in defaults:
-            raise SpecError(f"problem {name!r} has no parameter {key!r}{suggest(key, defaults)}; "
-                            f"parameters: {', '.join(defaults) or 'none'}")
-        kwargs[key] = parse_value(text, defaults[key], f"problem {name!r}, parameter {key!r}")
-    kwargs.update(overrides)
-    return REGISTRY[name](**kwargs)
+        if key not in arguments:
+            raise SpecError(f"problem {name!r} has no parameter {key!r}{suggest(key, arguments)}; "
+                            f"parameters: {', '.join(arguments) or 'none'}")
+        arguments[key] = parse_value(text, arguments[key], f"problem {name!r}, parameter {key!r}")
+    return ProblemSpec(name, tuple(arguments.items()), spec, origin)
 
 
-def check_size(spec: str) -> None:
+def make(spec: str | ProblemSpec, **overrides) -> Case:
+    """Build the case of ``spec`` (a spec string, or resolved by :func:`resolve`)."""
+    spec = resolve(spec)
+    return REGISTRY[spec.name](**{**spec.kwargs, **overrides})
+
+
+def check_size(spec: str | ProblemSpec) -> None:
     """Refuse ``spec`` when the product of its size parameters passes the problem's limit.
 
-    Only the spec's text and the factory's signature are read, nothing is built: the check
-    runs before a case is made, so a size that would exhaust memory costs nothing. Size
-    parameters are the whole-number ones but those in :data:`NOT_SIZES`.
+    Only the spec's parameters are read, nothing is built: the check runs before a case is
+    made, so a size that would exhaust memory costs nothing. Size parameters are the
+    whole-number ones but those in :data:`NOT_SIZES`.
 
     Raises
     ------
     SizeError
         Naming the parameters, the limit and the option that lifts it.
     SpecError
-        A spec that cannot be parsed (an unknown name is left to :func:`make`).
+        A spec that cannot be resolved (:func:`resolve`).
     """
-    _load()
-    name, raw = split_spec(spec)
-    if name not in REGISTRY:
-        return
-    sizes = {}
-    for key, default in parameters(name).items():
-        if isinstance(default, int) and not isinstance(default, bool) and key not in NOT_SIZES:
-            sizes[key] = (parse_value(raw[key], default, f"problem {name!r}, parameter {key!r}")
-                          if key in raw else default)
+    spec = resolve(spec)
+    sizes = {key: value for key, value in spec.arguments
+             if isinstance(value, int) and not isinstance(value, bool) and key not in NOT_SIZES}
     product = 1
     for value in sizes.values():
         product *= abs(value)
-    limit = SIZE_LIMITS.get(name, SIZE_LIMIT)
+    limit = SIZE_LIMITS.get(spec.name, SIZE_LIMIT)
     if product > limit:
         what = (f"{' * '.join(sizes)} = {' * '.join(map(str, sizes.values()))} = {product}"
                 if len(sizes) > 1 else f"{next(iter(sizes))} = {product}")
-        raise SizeError(f"problem {name!r}: {what} is above its size limit of {limit} "
+        raise SizeError(f"problem {spec.name!r}: {what} is above its size limit of {limit} "
                         f"(the product of its size parameters {', '.join(sizes)}); give "
                         f"{ALLOW_LARGE} to build it anyway")
 

@@ -1,9 +1,17 @@
 """Specification strings, ``name:key=value,...``, shared by the problem and integrator
-registries: splitting, typed values, and the error and hint they raise and give."""
+registries: splitting, typed values, the error and hint they raise and give, and the
+resolved values they become (:class:`ProblemSpec`, :class:`IntegratorSpec`).
+
+A spec string is parsed once, where it enters (command line, suite file, Python API):
+:func:`problems.resolve` and :func:`integrators.resolve` check the name and every
+``key=value`` against the registry and return a resolved spec, which
+:func:`problems.make` and :func:`integrators.make` build from without parsing again.
+"""
 
 from __future__ import annotations
 
 import difflib
+from dataclasses import dataclass, field
 
 
 class SpecError(ValueError):
@@ -47,3 +55,38 @@ def split_spec(spec: str) -> tuple[str, dict[str, str]]:
                 raise SpecError(f"{spec!r}: {key.strip()!r} is given twice")
             options[key.strip()] = value.strip()
     return name, options
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A resolved specification: the registry name and its arguments by name.
+
+    ``text`` is the spec as written (what ``runs.csv`` and messages show) and ``origin``
+    where it was written (a suite file and line); neither takes part in comparisons, so
+    ``pendulum`` and ``pendulum:L=1.0`` are the same spec.
+    """
+
+    name: str
+    arguments: tuple[tuple[str, object], ...]
+    text: str = field(default="", compare=False)
+    origin: str = field(default="", compare=False)
+
+    @property
+    def kwargs(self) -> dict[str, object]:
+        """The arguments as keyword arguments."""
+        return dict(self.arguments)
+
+    def __str__(self) -> str:
+        return self.text or self.name
+
+
+@dataclass(frozen=True)
+class ProblemSpec(Spec):
+    """A problem: its registered name and every parameter of its factory (defaults filled
+    in), typed as the defaults are."""
+
+
+@dataclass(frozen=True)
+class IntegratorSpec(Spec):
+    """An integrator: its registry key and the options given to it (typed as the class's
+    fields); once planned, every option of the integrator that runs."""

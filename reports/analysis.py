@@ -28,6 +28,7 @@ import pandas as pd
 
 from benchmarks import gate, records
 from benchmarks.drift import fit_order
+from benchmarks.records import Status
 
 #: Factor within which two methods count as tied for the smallest drift.
 TIE_FACTOR = 10.0
@@ -98,7 +99,7 @@ def setting(row) -> str:
 
 
 def is_ok(row) -> bool:
-    return row.get("status") == "ok"
+    return row.get("status") == Status.OK
 
 
 def latest(runs: pd.DataFrame) -> pd.DataFrame:
@@ -120,7 +121,7 @@ def representative(runs: pd.DataFrame) -> pd.DataFrame:
     if runs.empty:
         return runs
     r = runs.copy()
-    r["_ok"] = (r["status"] == "ok").astype(int)
+    r["_ok"] = (r["status"] == Status.OK).astype(int)
     r["_coarse"] = r["h"].astype(float).fillna(r["rtol"].astype(float)).fillna(0.0)
     r["_t_end"] = r["t_end"].astype(float).fillna(0.0)
     r = r.sort_values(["_t_end", "_ok", "_coarse"], ascending=False)
@@ -133,7 +134,7 @@ def sweep_horizon(runs: pd.DataFrame) -> float | None:
     settings (ties: the longest). Work-precision, convergence and cost at matched accuracy
     compare runs at this one horizon only: errors over different horizons do not compare.
     """
-    ok = runs[(runs["status"] == "ok") & runs["t_end"].notna()]
+    ok = runs[(runs["status"] == Status.OK) & runs["t_end"].notna()]
     if ok.empty:
         return None
     counts = ok.assign(_s=[f"{r['integrator']}|{setting(r)}" for _, r in ok.iterrows()]) \
@@ -167,7 +168,7 @@ class Winner:
 def drift_winner(runs: pd.DataFrame) -> Winner:
     """Smallest ``max(|g|, |G v + g_t|)`` among the finished representative runs."""
     rep = representative(runs)
-    rep = rep[rep["status"] == "ok"]
+    rep = rep[rep["status"] == Status.OK]
     vals = {r["integrator"]: worst_constraint(r) for _, r in rep.iterrows()}
     vals = {k: v for k, v in vals.items() if not math.isnan(v)}
     if not vals:
@@ -185,7 +186,7 @@ def energy_winner(runs: pd.DataFrame) -> Winner:
     """Smallest max relative energy error among the finished representative runs, with
     the drift class its run recorded."""
     rep = representative(runs)
-    rep = rep[(rep["status"] == "ok") & rep["rel_energy_error"].notna()]
+    rep = rep[(rep["status"] == Status.OK) & rep["rel_energy_error"].notna()]
     if rep.empty:
         return Winner(None, math.nan, "no conserved energy, or no finished run")
     row = rep.loc[rep["rel_energy_error"].astype(float).idxmin()]
@@ -203,7 +204,7 @@ def is_sensitive(runs: pd.DataFrame) -> bool:
 
 def reference_floor(row) -> float:
     """The accuracy of the reference a run's final error was measured against; 0 where the
-    record does not say (a closed form, or a store written before floors were recorded)."""
+    record holds none (a closed form)."""
     floor = _num(row.get("reference_floor"))
     return 0.0 if math.isnan(floor) else floor
 
@@ -265,14 +266,10 @@ class Timing:
 
 
 def timing(row) -> Timing:
-    """The :class:`Timing` of a run; the spread collapses to the median where the record
-    lacks it (a store written before it was recorded counts as one solve)."""
-    median = _num(row.get("wall_s"))
-    low, high, n = _num(row.get("wall_min_s")), _num(row.get("wall_max_s")), \
-        _num(row.get("repeats"))
-    if math.isnan(low) or math.isnan(high):
-        return Timing(median, median, median, 1)
-    return Timing(median, low, high, 1 if math.isnan(n) else int(n))
+    """The :class:`Timing` of a run (NaN times and one solve where it has none)."""
+    n = _num(row.get("repeats"))
+    return Timing(_num(row.get("wall_s")), _num(row.get("wall_min_s")),
+                  _num(row.get("wall_max_s")), 1 if math.isnan(n) else int(n))
 
 
 @dataclass
@@ -330,7 +327,7 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
     """The accuracy that cost is matched on: the final error where a reference exists and
     the problem is not chaotic (there it measures how fast nearby solutions separate), else
     the relative energy error; None when neither was measured."""
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     columns = ("rel_energy_error",) if is_sensitive(runs) else \
         ("final_state_error", "rel_energy_error")
     for col in columns:
@@ -341,7 +338,7 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
 
 def reaching(runs: pd.DataFrame, column: str, target: float) -> pd.DataFrame:
     """The finished runs whose :func:`accuracy` in ``column`` is at or below ``target``."""
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     values = np.array([accuracy(r, column) for _, r in ok.iterrows()], dtype=float)
     return ok[values <= target] if len(ok) else ok
 
@@ -374,7 +371,7 @@ def cost_winner(runs: pd.DataFrame) -> Winner:
     metric = accuracy_metric(runs)
     if metric is None:
         return Winner(None, math.nan, "no accuracy measured")
-    ok = runs[(runs["status"] == "ok") & runs[metric].notna()]
+    ok = runs[(runs["status"] == Status.OK) & runs[metric].notna()]
     if ok.empty:
         return Winner(None, math.nan, "no finished run with a measured accuracy")
     best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
@@ -414,7 +411,7 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
     :func:`verdict_floor` cannot be checked and says so.
     """
     runs = at_sweep_horizon(runs)
-    ok = runs[runs["status"] == "ok"]
+    ok = runs[runs["status"] == Status.OK]
     ran = sorted(set(runs["integrator"]))
     out = []
     for name in TARGET_METRICS:
@@ -503,7 +500,7 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
     self-convergence estimate; that run is left out). Uses the horizon with the most
     distinct step sizes.
     """
-    fixed = runs[(runs["status"] == "ok") & runs["h"].notna()].copy()
+    fixed = runs[(runs["status"] == Status.OK) & runs["h"].notna()].copy()
     if fixed.empty:
         return [], "no finished fixed-step run"
     counts = fixed.groupby("t_end")["h"].nunique()

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from benchmarks.files import replace_file
+from benchmarks.records import Status
 from reports.svg import clean
 
 
@@ -172,7 +173,7 @@ footer { margin-top: 3em; font-size: 0.85em; color: #444; border-top: 1px solid 
 """
 
 #: Statuses whose table rows are highlighted.
-BAD = ("failed", "error", "timeout")
+BAD = (Status.FAILED, Status.ERROR, Status.TIMEOUT)
 
 
 #: Cells longer than this wrap (messages, verdicts); shorter ones stay on one line.

@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 
 from benchmarks import gate
+from benchmarks.records import Status
 from reports.analysis import LABELS, Convergence, History, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
@@ -159,7 +160,7 @@ def work_precision(runs, colors: dict, title: str, x: tuple[str, ...], y: tuple[
     reference's)."""
     with rc_context(RC):
         fig, axes = _figure(len(y), len(x), 4.0 * len(x), 2.85 * len(y))
-        ok = runs[runs["status"] == "ok"]
+        ok = runs[runs["status"] == Status.OK]
         for i, pcol in enumerate(y):
             for j, ccol in enumerate(x):
                 ax = axes[i, j]

@@ -24,6 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from benchmarks.files import replace_file
+from benchmarks.records import Status
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
 from reports import figures, scaling as scaling_section
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
@@ -106,11 +107,10 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
 
 def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
     """Family -> its integrators, both sorted, as the runs recorded them (the integrators'
-    ``family`` trait); runs stored before families were recorded count as a family of
-    their own."""
+    ``family`` trait); a method that declares no family counts as a family of its own."""
     if runs.empty:
         return {}
-    family = runs.get("family", pd.Series(index=runs.index, dtype=object))
+    family = runs["family"]
     named = family.where(family.notna() & (family.astype(str) != ""), runs["integrator"])
     members: dict[str, list[str]] = {}
     for key, name in sorted(set(zip(runs["integrator"], named.astype(str)))):
@@ -121,7 +121,7 @@ def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
 def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
     if runs.empty:
         return "The results store holds no runs yet."
-    n_bad = int((current["status"] != "ok").sum())
+    n_bad = int((current["status"] != Status.OK).sum())
     return (f"{len(current)} runs shown (the latest of each problem, integrator, setting and "
             f"horizon) out of {len(runs)} stored, over {runs['session'].nunique()} invocations; "
             f"{n_bad} of those shown did not finish (status failed, error or timeout). Wall "
@@ -192,7 +192,7 @@ def _history(doc: Document, runs: pd.DataFrame) -> None:
 def _missing(row) -> str:
     """A cell without a value: 'n/a' in a finished run (the metric does not apply), the
     status in one that did not finish (never a blank or a zero)."""
-    return NOT_APPLICABLE if row["status"] == "ok" else str(row["status"])
+    return NOT_APPLICABLE if row["status"] == Status.OK else str(row["status"])
 
 
 def _cell(row, column: str) -> str:
@@ -250,7 +250,7 @@ def _summary(doc: Document, runs: pd.DataFrame) -> None:
 
 def _floor_note(runs: pd.DataFrame) -> str:
     """What the problem's reference is accurate to, where the runs recorded it."""
-    floor = largest_floor(runs[runs["status"] == "ok"])
+    floor = largest_floor(runs[runs["status"] == Status.OK])
     if floor <= 0:
         return ""
     n = sum(at_floor(r) for _, r in runs.iterrows())
@@ -262,7 +262,7 @@ def _floor_note(runs: pd.DataFrame) -> str:
 def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
              levels: tuple[float, ...], wp: tuple[tuple[str, ...], tuple[str, ...]]) -> None:
     doc.heading(2, f"Problem: {problem}", collapsible=True)
-    n_bad = int((runs["status"] != "ok").sum())
+    n_bad = int((runs["status"] != Status.OK).sum())
     horizons = ", ".join(fmt(x) for x in sorted(runs["t_end"].dropna().unique()))
     doc.add(Para(f"{len(runs)} runs of {runs['integrator'].nunique()} integrators, horizons "
                  f"t_end = {horizons}; {n_bad} did not finish." + _floor_note(runs)))
@@ -273,7 +273,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
                      "to compare, and the drift gate does not gate on it."))
     doc.heading(3, f"{problem}: summary")
     _summary(doc, runs)
-    bad = runs[runs["status"] != "ok"]
+    bad = runs[runs["status"] != Status.OK]
     if not bad.empty:
         doc.add(Para("Runs that did not finish:"))
         doc.add(Bullets([f"{r['integrator']} {setting(r)}: {r['status']}: "
@@ -283,7 +283,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
     rep = representative(runs)
     entries = []
     for _, r in rep.iterrows():
-        failed = r["status"] != "ok"
+        failed = r["status"] != Status.OK
         windows = dict(series(int(r["run_id"]))["windows"])
         if pd.isna(r["rel_energy_error"]):
             # |H - H0| of a system without a conserved energy measures nothing.
@@ -299,7 +299,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
 
     doc.heading(3, f"{problem}: work-precision")
     sweep = at_sweep_horizon(runs)
-    n_ok = int((sweep["status"] == "ok").sum())
+    n_ok = int((sweep["status"] == Status.OK).sum())
     horizon = fmt(sweep["t_end"].iloc[0]) if not sweep.empty else "none"
     x, y = wp
     floor = largest_floor(sweep)

@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 from benchmarks.files import replace_file
+from benchmarks.records import Status
 from reports import figures
 from reports.analysis import fmt
 from reports.document import Document, Figure, Para, Table, to_html, to_markdown
@@ -83,7 +84,7 @@ def section(doc: Document, data: dict) -> None:
         for family in families + [C_NAME]:
             done = sorted((p["n"], p["wall_per_step"]) for p in points
                           if p["problem"] == problem and p["family"] == family
-                          and p["status"] == "ok")
+                          and p["status"] == Status.OK)
             if family == C_NAME and not done:
                 continue
             lines.append({"label": "C (O(N) RATTLE)" if family == C_NAME else family,

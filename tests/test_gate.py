@@ -156,15 +156,16 @@ def test_an_exact_final_state_is_a_valid_baseline(tmp_path):
 
 def test_a_baseline_run_missing_from_the_results_fails_and_the_count_is_said(
         tmp_path, monkeypatch, capsys):
-    from benchmarks.records import Record, RunSpec, blank_row
+    from benchmarks.records import Ending, Metrics, Record, Run, RunSpec, Status
     (tmp_path / "gate.toml").write_text(SUITE)
     ran = RunSpec("pendulum", "rattle", 0.05, t_end=5.0)
     gone = RunSpec("pendulum", "lobatto3ab3", 0.05, t_end=5.0)
     base = baseline_file(tmp_path / "b.json", runs={
         ran.label(): entry(max_pos_residual=1e-12), gone.label(): entry(max_pos_residual=1e-12)})
     # Only the gate's bookkeeping is under test: the batch returns one of the two runs.
-    monkeypatch.setattr(check, "run_specs", lambda *a, **k: [Record(blank_row(
-        ran, status="ok", max_pos_residual=1e-12))])
+    monkeypatch.setattr(check, "run_specs", lambda *a, **k: [Record(
+        Run("pendulum", "rattle", h=0.05, t_end=5.0), Ending(Status.OK),
+        metrics=Metrics(max_pos_residual=1e-12))])
     code = check.main(["--suite", str(tmp_path / "gate.toml"), "--baseline", str(base)])
     out = capsys.readouterr().out.strip().splitlines()
     assert code == check.EXIT_REGRESSION

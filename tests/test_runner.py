@@ -15,7 +15,8 @@ import pytest
 
 import integrators
 from benchmarks import suites
-from benchmarks.batch import run_specs, validate
+from benchmarks.batch import run_specs
+from benchmarks.plan import plan
 from benchmarks.executors import PLUGIN_ENV, Task, load_plugins, pick
 from benchmarks.records import ACCURACY_COLUMNS, CODE_VERSION_ENV, InputError, RunSpec
 from benchmarks.store import load_artifacts, load_runs
@@ -131,10 +132,10 @@ def test_run_key_names_exactly_what_determines_results():
                  RunSpec("pendulum", f"rattle:newton_max_iter={limit + 1}", 0.1, t_end=1.0),
                  RunSpec("pendulum", "rattle", 0.1, t_end=2.0),
                  RunSpec("pendulum", "lobatto3ab2", 0.1, t_end=1.0)]
-    keys = [f["run_key"] for f in validate(same + different, "v1")]
+    keys = [r.run.run_key for r in plan(same + different, "v1")]
     assert len(set(keys[:len(same)])) == 1
     assert len(set(keys)) == 1 + len(different)
-    assert validate([base], "v2")[0]["run_key"] != keys[0]
+    assert plan([base], "v2")[0].run.run_key != keys[0]
 
 
 def test_suite_timeouts_group_overrides_suite(tmp_path):
@@ -177,7 +178,7 @@ def test_the_linear_solver_and_pattern_size_are_recorded(tmp_path):
 def test_a_run_returns_a_complete_record():
     """What the store and the report need is known where the run happens."""
     from benchmarks.drift import SEVERITY, kind_of
-    from benchmarks.execute import build, execute, known
+    from benchmarks.execute import execute
 
     row = execute(RunSpec("pendulum", "rattle", 0.05, t_end=10.0), repeats=2).row
     assert row["status"] == "ok"
@@ -188,4 +189,4 @@ def test_a_run_returns_a_complete_record():
     assert kind_of(row["energy_growth"]) in SEVERITY
     assert row["repeats"] == 2 and row["wall_min_s"] <= row["wall_s"] <= row["wall_max_s"]
     chaotic = RunSpec("double-pendulum:energy=high", "rattle", 0.01)
-    assert known(chaotic, *build(chaotic), None, "v")["sensitive"] == 1
+    assert plan([chaotic], "v")[0].run.sensitive == 1

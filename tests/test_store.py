@@ -11,7 +11,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks import store as store_mod
 from benchmarks.records import COLUMNS, Record
 from benchmarks.store import (SCHEMA_VERSION, Store, StoreError, artifact_table, load_artifacts,
                               load_runs, load_series)
@@ -33,7 +32,7 @@ def record(problem="pendulum", integrator="rattle", status="ok", run_key=None, *
                "v": np.stack([-np.sin(t), np.cos(t)], axis=1)}
     windows = {"t": t[1:], "pos": np.full(10, 1e-15), "vel": np.zeros(10),
                "energy": np.geomspace(1e-10, 1e-6, 10)}
-    return Record(row, windows, samples)
+    return Record.from_row(row, windows, samples)
 
 
 def test_a_run_round_trips_with_provenance_and_series(tmp_path):
@@ -138,7 +137,7 @@ def write_v1(path):
                "versions) VALUES ('old', 0.0, 'abc', 0, 'm', '3.11', '{}')")
     cols = ", ".join(f'"{c}"' for c in V1_COLUMNS)
     db.execute(f"INSERT INTO runs (session, {cols}) VALUES (1, {', '.join('?' * len(V1_COLUMNS))})",
-               [store_mod._sql(rec.row.get(c)) for c in V1_COLUMNS])
+               [rec.row[c] for c in V1_COLUMNS])
     arrays = {**{f"window:{k}": v for k, v in rec.windows.items()},
               **{f"sample:{k}": v for k, v in rec.samples.items()}}
     db.executemany("INSERT INTO series VALUES (1, ?, ?)",
@@ -171,6 +170,34 @@ def test_a_writer_migrates_version_1_in_place_and_appends(tmp_path):
     runs = load_runs(path)
     assert list(runs["suite"]) == ["old", "new"]
     assert np.isnan(runs.iloc[0]["nominal_order"])  # not known for migrated rows
+
+
+def test_a_run_stored_without_the_spread_of_its_solves_reads_as_one_solve(tmp_path):
+    """Version 2 -> 3: a run recorded before the spread was kept gets it from its one
+    known time, which the report shows as one solve."""
+    from reports.analysis import timing
+
+    path = tmp_path / "old.sqlite"
+    write_v1(path)
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE runs SET wall_s = 2.0, repeats = NULL")
+    row = load_runs(path).iloc[0]
+    assert (row["wall_min_s"], row["wall_max_s"], row["repeats"]) == (2.0, 2.0, 1)
+    t = timing(row)
+    assert (t.low, t.high, t.repeats, t.measured) == (2.0, 2.0, 1, False)
+
+
+def test_whole_numbers_stored_as_reals_are_migrated_to_integers(tmp_path):
+    """runs.csv of a resumed batch lists a count as 1000, not 1000.0, whoever stored it."""
+    path = tmp_path / "old.sqlite"
+    write_v1(path)
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE runs SET n_steps = 1000.0")
+    with Store(path):
+        pass
+    with sqlite3.connect(path) as db:
+        assert db.execute("SELECT typeof(n_steps), n_steps FROM runs").fetchone() == \
+            ("integer", 1000)
 
 
 def test_newer_versions_and_missing_files_are_refused(tmp_path):
@@ -208,3 +235,23 @@ def test_a_killed_writer_keeps_every_finished_run(tmp_path):
     assert list(runs["run_key"]) == ["0", "1", "2"]
     assert len(load_series(path, int(runs.iloc[2]["run_id"]))["windows"]) == 4
 
+
+
+def test_the_records_status_is_the_integrators():
+    """The store and reports read statuses from benchmarks.records (no JAX there); the
+    integrators write integrators.base.Status: one vocabulary, member for member."""
+    from benchmarks.records import Status
+    from integrators.base import Status as IntegratorStatus
+
+    assert [(s.name, s.value) for s in Status] == \
+        [(s.name, s.value) for s in IntegratorStatus]
+    assert all(a == b for a, b in zip(Status, IntegratorStatus))
+
+
+def test_every_column_is_a_field_of_one_part_of_the_record():
+    from dataclasses import fields
+
+    from benchmarks.records import PARTS
+
+    names = [f.name for part in PARTS.values() for f in fields(part)]
+    assert sorted(names) == sorted(COLUMNS) and len(set(names)) == len(names)

@@ -97,7 +97,8 @@ def test_a_suite_loads_files_relative_to_itself(tmp_path):
                      'integrators = ["rattle"]\nh = [0.1]\n')
     loaded = suites.load(str(suite))
     assert loaded.load == (str((tmp_path / "models" / "crank.py").resolve()),)
-    assert loaded.runs[0].problem == "crank-2:r=0.4"
+    assert str(loaded.runs[0].problem) == "crank-2:r=0.4"
+    assert loaded.runs[0].problem.kwargs["r"] == 0.4  # resolved where the suite is read
     assert problems.origin("crank-2") == loaded.load[0]
 
 

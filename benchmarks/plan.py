@@ -1,0 +1,241 @@
+"""The planner: runs as asked for become planned runs, with everything known before running.
+
+A run travels one way (design notes, section 2): spec strings are resolved where they enter
+(:func:`expand`, called by the command line, the suite files and the Python API), and
+:func:`plan` turns the resolved runs into :class:`PlannedRun` values that carry all that is
+fixed before a run starts: the problem's parameters, every integrator option, the horizon,
+the recording grid, the time limit, and the record's :class:`~benchmarks.records.Run`
+part (what the case and the method declare, and the ``run_key``). A worker executes a
+planned run as it is (:func:`benchmarks.execute.execute`) and recomputes none of it.
+
+Planning is where bad input is refused, before anything runs: each problem's size is
+checked before its case is built (:func:`problems.check_size`), each case is built once per
+problem spec and horizon (building checks the initial values; user problems are audited,
+:mod:`benchmarks.audit`), each integrator once per spec and setting (its options checked),
+and a fixed-step run of more than :data:`STEP_LIMIT` steps is refused; ``allow_large``
+lifts both limits. :func:`pending` applies ``--resume`` and runs every run once.
+
+This module imports no engine (pool, Dask): reading a suite needs only the registries.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import re
+from dataclasses import dataclass
+from typing import Iterable
+
+import integrators
+import problems
+from benchmarks.audit import AuditError, audit, explain
+from benchmarks.records import InputError, Run, RunSpec, identity, one_line, run_key
+from problems.spec import IntegratorSpec, ProblemSpec, SpecError
+
+#: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
+DEFAULT_TIMEOUT = 3600.0
+#: Most steps of a fixed-step run planned without ``allow_large``: a thousand times the
+#: longest run of the shipped suites; ``--h 1e-9 --t-end 1`` (10^9 steps) would otherwise
+#: run silently for up to an hour.
+STEP_LIMIT = 10**8
+#: Runs of at least this many steps, or of steps times coordinates, get their estimated
+#: size printed before the batch starts.
+LONG_STEPS, LONG_WORK = 10**6, 10**8
+
+
+@dataclass(frozen=True)
+class PlannedRun:
+    """A run ready to execute: everything known before it starts.
+
+    ``problem`` holds every parameter, ``integrator`` every option of the method that
+    runs; ``horizon`` is the ``t_end`` asked for (``None``: the problem's own; the resolved
+    one is ``run.t_end``); ``grid`` the :class:`~integrators.base.Grid` options;
+    ``timeout`` the time limit in seconds (``None``: no limit); ``run`` the record's
+    :class:`~benchmarks.records.Run` part, ``run_key`` included; ``origin`` where the run
+    was asked for.
+    """
+
+    problem: ProblemSpec
+    integrator: IntegratorSpec
+    horizon: float | None
+    grid: tuple[tuple[str, object], ...]
+    timeout: float | None
+    run: Run
+    origin: str = ""
+
+    @property
+    def label(self) -> str:
+        """The run's :func:`~benchmarks.records.identity` (settings and horizon resolved)."""
+        return identity(self.run)
+
+
+def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=None,
+           timeout=None, origin="") -> list[RunSpec]:
+    """Every combination: ``hs`` go to fixed-step methods, ``rtols x atols`` to adaptive ones.
+
+    Each spec string is resolved here, once (:func:`problems.resolve`,
+    :func:`integrators.resolve`); an empty list leaves the method's own default for that
+    setting.
+
+    Raises
+    ------
+    SpecError
+        An unknown name, parameter or option, or a value of the wrong type.
+    """
+    resolved = [problems.resolve(p, origin) for p in problem_specs]
+    methods = [integrators.resolve(i, origin) for i in integrator_specs]
+    runs = []
+    for p, i in itertools.product(resolved, methods):
+        if integrators.cls_of(i.name).adaptive:
+            for rtol, atol in itertools.product(rtols or [None], atols or [None]):
+                runs.append(RunSpec(p, i, None, rtol, atol, t_end, timeout, origin))
+        else:
+            runs.extend(RunSpec(p, i, h, None, None, t_end, timeout, origin)
+                        for h in (hs or [None]))
+    return runs
+
+
+def check_timeout(value, where: str) -> None:
+    """A time limit must be a positive number of seconds (``inf``: none)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise InputError(f"{where}: timeout = {value!r} must be a positive number of "
+                         f"seconds (inf for no limit)")
+
+
+def cluster_address(address: str) -> tuple[int | None, str | None]:
+    """``(N, None)`` for ``local:N``, ``(None, address)`` for ``tcp://HOST:PORT``
+    (:class:`benchmarks.cluster.Cluster`).
+
+    Raises
+    ------
+    InputError
+        Any other address.
+    """
+    local = re.fullmatch(r"local:(\d+)", address.strip())
+    if local and int(local.group(1)) >= 1:
+        return int(local.group(1)), None
+    if re.fullmatch(r"tcp://[^\s:/]+:\d+", address.strip()):
+        return None, address.strip()
+    raise InputError(f"cluster {address!r}: must be local:N (N >= 1 workers on this machine) "
+                     f"or tcp://HOST:PORT (a running Dask scheduler)")
+
+
+def known(problem: ProblemSpec, integrator: IntegratorSpec, case, integ, asked: RunSpec,
+          grid: dict, version: str) -> Run:
+    """The record's :class:`~benchmarks.records.Run` part of a run of ``integ`` on
+    ``case``, its ``run_key`` computed for code version ``version``."""
+    opts = integ.options()
+    resolved = {"problem": problem.name, "arguments": problem.kwargs,
+                "params": dict(case.params), "integrator": integrator.name, "options": opts,
+                "t_end": case.t_end, "grid": grid}
+    return Run(problem=str(asked.problem), integrator=str(asked.integrator), h=opts.get("h"),
+               rtol=opts.get("rtol"), atol=opts.get("atol"), t_end=case.t_end,
+               options=json.dumps(opts, default=str),
+               params=json.dumps(case.params, default=str), run_key=run_key(resolved, version),
+               t0=case.t0, energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
+               sensitive=int(bool(case.system.sensitive)), family=integ.family)
+
+
+def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = None,
+         timeout: float = DEFAULT_TIMEOUT, allow_large: bool = False,
+         notes: list[str] | None = None) -> list[PlannedRun]:
+    """Check every run and plan it, before any starts.
+
+    Parameters
+    ----------
+    specs : iterable of RunSpec
+        The runs as asked for (spec strings are resolved here where :func:`expand` has
+        not done it).
+    version : str
+        The code version the run keys are computed with (with a digest of the user code).
+    grid_options : dict, optional
+        :class:`~integrators.base.Grid` options of every run.
+    timeout : float
+        The time limit of a run that sets none itself (``inf``: none).
+    allow_large : bool
+        Lift the size limit of problems and :data:`STEP_LIMIT`.
+    notes : list of str, optional
+        The estimated sizes of long runs are appended to it.
+
+    Returns
+    -------
+    list of PlannedRun
+        One per spec, in order.
+
+    Raises
+    ------
+    InputError
+        On the first bad run, with where it was asked for (suite file and line) and what
+        is wrong, on one line.
+    """
+    grid = dict(grid_options or {})
+    cases: dict[tuple, object] = {}
+    audited: set[ProblemSpec] = set()
+    out = []
+    for spec in specs:
+        where = f"{spec.origin}: " if spec.origin else ""
+        try:
+            if spec.timeout is not None:
+                check_timeout(spec.timeout, spec.label())
+            problem = problems.resolve(spec.problem, spec.origin)
+            method = integrators.resolve(spec.integrator, spec.origin)
+            if (problem, spec.t_end) not in cases:
+                if not allow_large:
+                    problems.check_size(problem)
+                case = problems.make(problem)
+                # The library's own problems are verified by its tests; user code is
+                # checked here, once per problem spec, before it can spoil every run.
+                if problem not in audited and problems.origin(problem.name) != "built-in":
+                    audit(case)
+                    audited.add(problem)
+                cases[problem, spec.t_end] = (case if spec.t_end is None else
+                                              case.with_t_end(spec.t_end))
+            case = cases[problem, spec.t_end]
+            integ = integrators.make(method, h=spec.h, rtol=spec.rtol, atol=spec.atol)
+            run = known(problem, method, case, integ, spec, grid, version)
+            _check_steps(run, int(case.q0.size), spec.label(), allow_large, notes)
+            limit = spec.timeout if spec.timeout is not None else timeout
+            out.append(PlannedRun(problem, IntegratorSpec(method.name,
+                                                          tuple(integ.options().items()),
+                                                          method.text, method.origin),
+                                  spec.t_end, tuple(grid.items()),
+                                  None if math.isinf(limit) else float(limit), run,
+                                  spec.origin))
+        except (InputError, AuditError, SpecError) as exc:
+            raise InputError(one_line(f"{where}{exc}")) from None
+        except Exception as exc:  # user code or a defect met while building: one line
+            raise InputError(one_line(f"{where}{spec.label()}: {explain(exc)}")) from None
+    return out
+
+
+def _check_steps(run: Run, n: int, label: str, allow_large: bool,
+                 notes: list[str] | None) -> None:
+    """Refuse a fixed-step run of more than :data:`STEP_LIMIT` steps of ``n`` coordinates;
+    note a long one (``label`` names the run as it was asked for)."""
+    if run.h is None or run.t_end is None:
+        return
+    steps = (run.t_end - (run.t0 or 0.0)) / run.h
+    size = f"about {steps:.3g} steps of {n} coordinates"
+    if steps > STEP_LIMIT and not allow_large:
+        raise InputError(f"{label}: {size} is above the limit of {STEP_LIMIT:.0e} steps; "
+                         f"give a larger h, a shorter t_end, or {problems.ALLOW_LARGE} to "
+                         f"run it anyway")
+    if notes is not None and (steps >= LONG_STEPS or steps * n >= LONG_WORK):
+        notes.append(f"note: {label}: a long run, {size}")
+
+
+def firsts(runs: list[PlannedRun]) -> list[int]:
+    """For each run, the index of the first run with its ``run_key`` (itself if none):
+    runs that resolve to the same run execute once."""
+    first: dict[str, int] = {}
+    return [first.setdefault(r.run.run_key, i) for i, r in enumerate(runs)]
+
+
+def pending(runs: list[PlannedRun], finished: set[str]) -> tuple[list[int], list[int]]:
+    """Which runs execute and which ``--resume`` drops: the indices of the first run of
+    each ``run_key`` that ``finished`` (the keys a store holds as finished) lacks, and of
+    those it holds."""
+    unique = [i for i, first in enumerate(firsts(runs)) if first == i]
+    return ([i for i in unique if runs[i].run.run_key not in finished],
+            [i for i in unique if runs[i].run.run_key in finished])
