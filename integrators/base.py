@@ -71,7 +71,7 @@ class Trajectory:
     says where residuals were measured (``"every step"``, ``"every internal step"`` or a
     dense output grid). ``linear_solver`` names the linear algebra that ran (``"dense"``, or
     the structured solver chosen from the sparsity of the constraints, see
-    :mod:`integrators.structure`) and ``pattern_nnz`` the number of structural nonzeros of
+    :mod:`linalg.schur`) and ``pattern_nnz`` the number of structural nonzeros of
     the constraint Jacobian ``G`` (``None`` where no pattern was needed).
     """
 

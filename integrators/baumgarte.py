@@ -342,7 +342,7 @@ class BaumgarteRK(BaumgarteBase):
 
     Counts: ``n_f_evals`` vector-field evaluations (the stages: 4 per step for rk4), each
     one factorisation and solve of ``G M^{-1} G^T`` (``n_lin_solves``; dense Cholesky, or
-    the structured solver chosen by ``linear_solver``, :mod:`problems.structure`); no
+    the structured solver chosen by ``linear_solver``, :mod:`linalg`); no
     Newton iterations.
     Measured at every step.
 
@@ -355,7 +355,7 @@ class BaumgarteRK(BaumgarteBase):
     alpha, beta : float
         Baumgarte damping and stiffness (1/s).
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
+        How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01
@@ -412,7 +412,7 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
     max_steps : int
         Accepted steps allowed over the run; reaching it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
+        How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 
     adaptive: ClassVar[bool] = True

@@ -144,7 +144,7 @@ class GeneralizedAlpha(Integrator):
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        Linear algebra of the index-3 form (:func:`problems.structure.schur`): large sparse
+        Linear algebra of the index-3 form (:func:`linalg.schur.choose`): large sparse
         systems use simplified Newton through ``G M^{-1} G^T`` (:meth:`simplified`). The
         ``ggl`` form always solves densely (its ``mu`` needs solves with ``G G^T``).
     """

@@ -4,7 +4,7 @@ The problem's JAX functions give the residual ``F(t, y, y')`` and its iteration 
 ``dF/dy + cj dF/dy'`` (forward-mode autodiff, no finite differences); both are compiled once
 per case in ``prepare`` and handed to IDA through scikit-sundae. Large systems get the
 iteration matrix as a sparse matrix, its pattern traced from the residual and its values
-from compressed autodiff (:class:`problems.structure.SparseJacobian`), factorised by
+from compressed autodiff (:class:`linalg.pattern.SparseJacobian`), factorised by
 SUNDIALS' sparse direct solver (SuperLU_MT, with its own fill-reducing column ordering). IDA runs in one-step mode
 so that every internal step is measured; the drift bookkeeping is
 :class:`integrators.record.Recorder`'s.
@@ -29,9 +29,11 @@ from sksundae.ida import IDA as SundialsIDA
 
 from integrators.base import FAILED, OK, Grid, Integrator
 from integrators.record import Recorder
+from linalg.pattern import SparseJacobian
+from linalg.schur import DENSE_MAX
+from linalg.sparse import FALLBACK_MAX
 from problems.case import Case
 from problems.mechanics import Mechanics
-from problems.structure import DENSE_MAX, FALLBACK_MAX, SparseJacobian
 
 Residual = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -109,7 +111,7 @@ RANK_CHECK_MAX = 512
 EXCLUDED = 1e30
 
 #: IDA's direct linear solvers: ``auto`` picks ``sparse`` for more than
-#: :data:`problems.structure.DENSE_MAX` constraints and ``dense`` otherwise.
+#: :data:`linalg.schur.DENSE_MAX` constraints and ``dense`` otherwise.
 LINEAR_SOLVERS = ("auto", "dense", "lapackdense", "sparse")
 
 #: ``jacobian`` option -> whether our autodiff iteration matrix is handed to IDA (else IDA
@@ -290,7 +292,7 @@ class IDA(Integrator):
     linsolver : {"auto", "dense", "lapackdense", "sparse"}
         IDA's direct linear solver: dense (SUNDIALS' own or LAPACK's) or sparse
         (SuperLU_MT, one thread, on the compressed autodiff Jacobian); ``auto`` takes
-        ``sparse`` above :data:`problems.structure.DENSE_MAX` constraints.
+        ``sparse`` above :data:`linalg.schur.DENSE_MAX` constraints.
     jacobian : {"autodiff", "difference-quotient"}
         The iteration matrix: ours (forward-mode autodiff, the default) or IDA's
         difference quotients of the residual (for comparison).

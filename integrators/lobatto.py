@@ -41,7 +41,7 @@ class LobattoIIIAIIIB(Integrator):
     warm-started from the previous step's multipliers.
 
     Small systems use the exact autodiff Jacobian of the whole stage system, densely.
-    Large sparse ones (``linear_solver``, :mod:`problems.structure`) use simplified Newton
+    Large sparse ones (``linear_solver``, :mod:`linalg`) use simplified Newton
     with the Jacobian frozen at ``(q_0, p_0)``, without the force Jacobian and the
     derivatives of ``G`` (exact for the linear part of a separable system), and eliminate
     the stage positions and momenta: with ``S_0 = G(q_0) M^{-1} G(q_0)^T`` the corrections
@@ -75,7 +75,7 @@ class LobattoIIIAIIIB(Integrator):
         ``G`` along the motion (about 0.3 for sps-ring at ``h = 0.1``: 20 iterations to
         round-off), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
+        How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01

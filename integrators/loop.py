@@ -59,7 +59,7 @@ import numpy as np
 from integrators.base import COUNTERS, FAILED, OK, Grid, Trajectory
 from integrators.record import measurer
 from problems.mechanics import Mechanics
-from problems.structure import FALLBACK_MAX
+from linalg.sparse import FALLBACK_MAX
 
 #: Failure codes a step can return (0 is success).
 CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite",

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from integrators.base import Grid, Integrator
 from integrators.loop import march
 from integrators.newton import newton
+from linalg.dense import solve
 from problems.case import Case
-from problems.structure import solve
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class Rattle(Integrator):
     otherwise the unknown is ``(p_{1/2}, q_1, lambda)``. The velocity projection is linear
     in ``mu`` (one m x m solve) because ``H_p`` is linear in ``p``.
 
-    Large sparse systems (``linear_solver``, :mod:`problems.structure`) use simplified
+    Large sparse systems (``linear_solver``, :mod:`linalg`) use simplified
     Newton instead: the Jacobian is replaced by ``-h^2/2 S_0`` with the Schur complement
     ``S_0 = G(q_0) M^{-1} G(q_0)^T``, whose factor is the previous step's velocity
     projection matrix, so each step factorises ``S`` once (at ``q_1``, for the velocity
@@ -60,7 +60,7 @@ class Rattle(Integrator):
         (on sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
         forces peak, it needed more than 20 iterations), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
+        How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01
