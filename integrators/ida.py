@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 from sksundae.ida import IDA as SundialsIDA
 
-from integrators.base import FAILED, OK, Grid, Integrator
+from integrators.base import Grid, Integrator
 from integrators.record import Recorder
 from linalg.pattern import SparseJacobian
 from linalg.schur import DENSE_MAX
@@ -417,15 +417,14 @@ class IDA(Integrator):
         def solve():
             if redundant:
                 recorder.start(t0, y0[:n], y0[n:2 * n])
-                return recorder.trajectory(FAILED, redundant, t0, y0[:n], y0[n:2 * n],
-                                           {"n_steps": 0}, sampling, fail_step=1, fail_time=t0,
-                                           **solver_record)
+                return recorder.trajectory(redundant, t0, y0[:n], y0[n:2 * n], {"n_steps": 0},
+                                           sampling, **solver_record)
             callbacks.reset()
             start = ida.init_step(t0, y0, yp0)
             if not start.success:
                 raise RuntimeError(f"IDA did not initialise: {start.message}")
             recorder.start(t0, y0[:n], y0[n:2 * n])
-            t, y, steps, failure = t0, y0, 0, None
+            t, y, steps, failure = t0, y0, 0, ""
             nfev = njev = 0
             # The binding prints SUNDIALS' own error text (which says where and with what
             # step size IDA gave up); it is captured for the failure message.
@@ -454,11 +453,7 @@ class IDA(Integrator):
             extra = {"callback_s": callbacks.residual_s + callbacks.jacobian_s,
                      "residual_s": callbacks.residual_s, "jacobian_s": callbacks.jacobian_s,
                      "initial_residual": initial_residual}
-            if failure is None:
-                return recorder.trajectory(OK, "", t, y[:n], y[n:2 * n], counts, sampling,
-                                           extra=extra, **solver_record)
-            return recorder.trajectory(FAILED, failure, t, y[:n], y[n:2 * n], counts,
-                                       sampling, fail_step=steps + 1, fail_time=t,
+            return recorder.trajectory(failure, t, y[:n], y[n:2 * n], counts, sampling,
                                        extra=extra, **solver_record)
 
         return solve

@@ -13,9 +13,10 @@ solve the remaining equations, which for a consistent system is an exact solutio
 multipliers give the same, unique constraint force ``G^T lambda`` as any other. The dense
 path finds the dependent constraints by QR with column pivoting (:func:`basic_solve`); the
 banded Cholesky drops them as it meets them, in its elimination order, at no extra cost
-and without leaving the compiled loop (:func:`linalg.banded.band_cholesky`); SuperLU, which cannot, hands
-a singular ``S`` to a dense basic solve on the host for up to :data:`linalg.sparse.FALLBACK_MAX`
-constraints, and above that the step fails with that message.
+and without leaving the compiled loop (:func:`linalg.banded.band_cholesky`); SuperLU,
+which cannot, hands a singular ``S`` to a dense basic solve on the host for up to
+:data:`linalg.sparse.FALLBACK_MAX` constraints, and above that the step fails with that
+message.
 """
 
 from __future__ import annotations
