@@ -10,6 +10,7 @@ import dataclasses
 import importlib
 
 from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
+from integrators.fixed import FixedStep, Stepper  # noqa: F401
 from problems.spec import SpecError, parse_value, split_spec, suggest
 
 #: key -> ("module:Class", preset options)
