@@ -12,6 +12,7 @@ import dataclasses
 import importlib
 
 from integrators.base import Grid, Integrator, Trajectory  # noqa: F401
+from integrators.fixed import FixedStep, Stepper  # noqa: F401
 from problems.source import located
 from problems.spec import IntegratorSpec, SpecError, parse_value, split_spec, suggest
 

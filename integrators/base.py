@@ -17,8 +17,10 @@ from typing import Callable, ClassVar
 
 import numpy as np
 
+from linalg.sparse import FALLBACK_MAX
 from problems.case import Case
 from problems.source import located
+
 
 class Status(enum.StrEnum):
     """How a run ended (design notes, section 6); the values are what runs.csv and the store
@@ -36,6 +38,35 @@ class Status(enum.StrEnum):
 
 
 OK, FAILED, TIMEOUT, ERROR, SKIPPED = Status
+
+
+class Failure(enum.IntEnum):
+    """Why a step of our compiled loops failed: the integer code a step returns, with its
+    message (:attr:`message`). ``NONE`` (0) is a step that did not fail.
+
+    The codes are data inside the compiled loops (``jnp.where`` on them, never Python
+    branching on values), so one vocabulary serves the fixed-step loop
+    (:mod:`integrators.loop`), the diffrax-driven loop (:mod:`integrators.baumgarte`) and
+    manual stepping (:class:`integrators.fixed.Stepper`). Messages with ``{...}`` fields
+    are formatted by the loop that knows their values.
+    """
+
+    NONE = 0, ""
+    NEWTON = 1, "the stage equations did not converge (Newton)"
+    NON_FINITE = 2, "the state became non-finite"
+    SINGULAR = 3, ("G M^-1 G^T could not be solved with: not finite, or numerically singular "
+                   "(redundant constraints or a singular configuration) with more than "
+                   f"{FALLBACK_MAX} constraints on the superlu path; linear_solver=dense or "
+                   "banded handles a singular one")
+    UNDERFLOW = 4, "the step size underflowed: attempts were rejected until h reached round-off"
+    SOLVER = 5, "the diffrax solver reported an unsuccessful step"
+    MAX_STEPS = 6, "max_steps = {max_steps} accepted steps were reached before t_end = {t_end:g}"
+
+    def __new__(cls, code: int, message: str):
+        member = int.__new__(cls, code)
+        member._value_ = code
+        member.message = message
+        return member
 
 #: Work counters every run reports (zero where a method has no such work).
 COUNTERS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves")
@@ -72,7 +103,7 @@ class Trajectory:
     says where residuals were measured (``"every step"``, ``"every internal step"`` or a
     dense output grid). ``linear_solver`` names the linear algebra that ran (``"dense"``, or
     the structured solver chosen from the sparsity of the constraints, see
-    :mod:`integrators.structure`) and ``pattern_nnz`` the number of structural nonzeros of
+    :mod:`linalg.schur`) and ``pattern_nnz`` the number of structural nonzeros of
     the constraint Jacobian ``G`` (``None`` where no pattern was needed).
     """
 

@@ -31,7 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix
 
-from integrators.base import FAILED, OK, Grid, Integrator
+from integrators.base import Failure, Grid, Integrator
+from integrators.fixed import FixedStep
 from integrators.loop import put
 from integrators.record import Recorder, batch_length
 from problems.case import Case
@@ -64,15 +65,6 @@ SOLVERS: dict[str, type[diffrax.AbstractERK]] = {
     "dopri5": diffrax.Dopri5,
     "dopri8": diffrax.Dopri8,
 }
-
-#: Failure codes of the step loop (0 is success).
-CODES = {
-    1: "the state became non-finite",
-    2: "the step size underflowed: attempts were rejected until h reached round-off",
-    3: "the diffrax solver reported an unsuccessful step",
-    4: "max_steps = {max_steps} accepted steps were reached before t_end = {t_end:g}",
-}
-
 
 def baumgarte_field(mech: Mechanics, alpha: float, beta: float, schur=None):
     """The stabilised first-order ODE ``y' = (v, a)`` for ``y = (q, v)``.
@@ -219,8 +211,9 @@ def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
         keep, t_new, t_next, cstate = control.adapt(params, st, y1, y_error, error_order)
         finite = jnp.all(jnp.isfinite(y1))
         underflow = ~keep & (t_next - st.t <= tiny * jnp.maximum(1.0, jnp.abs(st.t)))
-        code = jnp.where(result != diffrax.RESULTS.successful, 3,
-                         jnp.where(keep & ~finite, 1, jnp.where(underflow, 2, 0)))
+        code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER,
+                         jnp.where(keep & ~finite, Failure.NON_FINITE,
+                                   jnp.where(underflow, Failure.UNDERFLOW, Failure.NONE)))
         accept = keep & (code == 0)
 
         def pick(new, old):
@@ -277,14 +270,12 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
                   "n_jac_evals": 0, "n_newton": 0, "n_lin_solves": evals}
         y = state.y
         if code == 0 and t < grid.t_end:
-            code = 4
-        if code == 0:
-            return recorder.trajectory(OK, "", t, y[:n], y[n:], counts, sampling,
-                                       **solver_record)
-        what = CODES[code].format(max_steps=max_steps, t_end=grid.t_end)
-        message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
-        return recorder.trajectory(FAILED, message, t, y[:n], y[n:], counts, sampling,
-                                   fail_step=steps + 1, fail_time=t, **solver_record)
+            code = Failure.MAX_STEPS
+        message = ""
+        if code:
+            what = Failure(code).message.format(max_steps=max_steps, t_end=grid.t_end)
+            message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
+        return recorder.trajectory(message, t, y[:n], y[n:], counts, sampling, **solver_record)
 
     return solve
 
@@ -317,7 +308,7 @@ class BaumgarteBase(Integrator):
 
 
 @dataclass(frozen=True)
-class BaumgarteRK(BaumgarteBase):
+class BaumgarteRK(BaumgarteBase, FixedStep):
     """Baumgarte-stabilised explicit Runge-Kutta method with a fixed step.
 
     Integrates ``q' = v``, ``v' = a(t, q, v)`` with the accelerations of the module
@@ -342,7 +333,7 @@ class BaumgarteRK(BaumgarteBase):
 
     Counts: ``n_f_evals`` vector-field evaluations (the stages: 4 per step for rk4), each
     one factorisation and solve of ``G M^{-1} G^T`` (``n_lin_solves``; dense Cholesky, or
-    the structured solver chosen by ``linear_solver``, :mod:`problems.structure`); no
+    the structured solver chosen by ``linear_solver``, :mod:`linalg`); no
     Newton iterations.
     Measured at every step.
 
@@ -355,12 +346,42 @@ class BaumgarteRK(BaumgarteBase):
     alpha, beta : float
         Baumgarte damping and stiffness (1/s).
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
+        How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01
 
+    def term(self, mech: Mechanics, schur) -> diffrax.ODETerm:
+        """The stabilised field as diffrax's term."""
+        return diffrax.ODETerm(baumgarte_field(mech, self.alpha, self.beta, schur))
+
+    def start(self, mech: Mechanics, schur, q0, v0, t0):
+        """``(y, solver_state)`` with ``y = (q, v)`` (the state is ``None`` but for an
+        FSAL pair, whose first stage it holds)."""
+        y0 = jnp.concatenate([q0, v0])
+        return y0, SOLVERS[self.solver]().init(self.term(mech, schur), t0, t0, y0, None)
+
+    def step(self, mech: Mechanics, schur, carry, t, h):
+        """One step of diffrax's ``solver.step`` (:class:`integrators.fixed.FixedStep`)."""
+        y, sstate = carry
+        solver = SOLVERS[self.solver]()
+        y1, _, _, sstate, result = solver.step(self.term(mech, schur), t, t + h, y, None,
+                                               sstate, False)
+        code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER, Failure.NONE)
+        stages = solver.tableau.num_stages - int(solver.tableau.fsal)
+        return (y1, sstate), code, jnp.asarray(0.0), {"n_f_evals": stages,
+                                                      "n_lin_solves": stages}
+
+    def observe(self, mech: Mechanics, carry):
+        """``(q, v)``."""
+        return carry[0][:mech.n], carry[0][mech.n:]
+
     def prepare(self, case: Case, grid: Grid):
+        # The diffrax-driven loop that the adaptive pairs share, not the fixed-step loop
+        # (integrators.loop), which the same start/step/observe would run too: this one
+        # steps with dt = t_{k+1} - t_k and ends at t_end exactly, so the fixed-step loop
+        # changes its results at round-off (q after 200 steps on the pendulum by 5e-15)
+        # and lays its windows out by step count instead of by time.
         self.check()
         n_steps = max(1, math.ceil((grid.t_end - grid.t0) / self.h * (1 - 1e-12)))
         control = FixedSteps(float(grid.t0), float(grid.t_end))
@@ -412,7 +433,7 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
     max_steps : int
         Accepted steps allowed over the run; reaching it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How ``G M^{-1} G^T`` is solved (:func:`problems.structure.schur`).
+        How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 
     adaptive: ClassVar[bool] = True

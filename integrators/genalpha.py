@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from integrators.base import Grid, Integrator
-from integrators.loop import march
+from integrators.fixed import FixedStep, newton_failure
 from integrators.newton import newton
-from problems.case import Case
 from problems.mechanics import Mechanics
 
 #: ``formulation`` option -> whether the velocity constraint is enforced as well.
@@ -55,7 +53,7 @@ class State(NamedTuple):
 
 
 @dataclass(frozen=True)
-class GeneralizedAlpha(Integrator):
+class GeneralizedAlpha(FixedStep):
     """Generalized-alpha (Chung and Hulbert 1993) for constrained systems (Arnold and Bruls 2007).
 
     One step from ``(q_n, v_n, a_n, \\ddot q_n)`` to ``t_{n+1} = t_n + h``:
@@ -144,7 +142,7 @@ class GeneralizedAlpha(Integrator):
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        Linear algebra of the index-3 form (:func:`problems.structure.schur`): large sparse
+        Linear algebra of the index-3 form (:func:`linalg.schur.choose`): large sparse
         systems use simplified Newton through ``G M^{-1} G^T`` (:meth:`simplified`). The
         ``ggl`` form always solves densely (its ``mu`` needs solves with ``G G^T``).
     """
@@ -241,7 +239,7 @@ class GeneralizedAlpha(Integrator):
         return State(q0, v0, acc, acc, lam)
 
     def step(self, mech: Mechanics, schur, state: State, t, h):
-        """One step: ``(state1, code, residual, counts)`` (see :func:`integrators.loop.march`)."""
+        """One step (:class:`integrators.fixed.FixedStep`)."""
         residual, z0, advance = self.equations(mech, state, t, h)
         linear, ok = (None, True) if schur.name == "dense" else self.simplified(
             mech, schur, state, t)
@@ -251,19 +249,13 @@ class GeneralizedAlpha(Integrator):
         extra_G = int(FORMULATIONS[self.formulation])
         counts = {"n_f_evals": it + 1, "n_jac_evals": it + extra_G, "n_newton": it,
                   "n_lin_solves": it}
-        code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
-        return advance(sol.z), code, sol.residual, counts
+        return advance(sol.z), newton_failure(sol.converged, ok), sol.residual, counts
 
-    def prepare(self, case: Case, grid: Grid):
-        self.check()
-        mech = case.mech
+    def observe(self, mech: Mechanics, state: State):
+        """``(q, v)``."""
+        return state.q, state.v
+
+    def linear_algebra(self, mech: Mechanics):
         # The ggl form's mu enters through G^T mu without M^{-1}: its elimination needs
         # solves with G G^T, which only the dense path does.
-        schur = mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)
-        # Compiled once; run eagerly, each autodiff operation would compile on its own.
-        state0 = jax.jit(lambda q0, v0, t0: self.start(mech, schur, q0, v0, t0))(
-            jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
-        return march(mech, grid, self.h, state0,
-                     lambda state, t, h: self.step(mech, schur, state, t, h),
-                     lambda state: (state.q, state.v), key=replace(self, h=None),
-                     linear_solver=schur.name, pattern_nnz=schur.nnz)
+        return mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)

@@ -4,7 +4,7 @@ The problem's JAX functions give the residual ``F(t, y, y')`` and its iteration 
 ``dF/dy + cj dF/dy'`` (forward-mode autodiff, no finite differences); both are compiled once
 per case in ``prepare`` and handed to IDA through scikit-sundae. Large systems get the
 iteration matrix as a sparse matrix, its pattern traced from the residual and its values
-from compressed autodiff (:class:`problems.structure.SparseJacobian`), factorised by
+from compressed autodiff (:class:`linalg.pattern.SparseJacobian`), factorised by
 SUNDIALS' sparse direct solver (SuperLU_MT, with its own fill-reducing column ordering). IDA runs in one-step mode
 so that every internal step is measured; the drift bookkeeping is
 :class:`integrators.record.Recorder`'s.
@@ -27,11 +27,13 @@ import numpy as np
 import scipy.sparse as sp
 from sksundae.ida import IDA as SundialsIDA
 
-from integrators.base import FAILED, OK, Grid, Integrator
+from integrators.base import Grid, Integrator
 from integrators.record import Recorder
+from linalg.pattern import SparseJacobian
+from linalg.schur import DENSE_MAX
+from linalg.sparse import FALLBACK_MAX
 from problems.case import Case
 from problems.mechanics import Mechanics
-from problems.structure import DENSE_MAX, FALLBACK_MAX, SparseJacobian
 
 Residual = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -109,7 +111,7 @@ RANK_CHECK_MAX = 512
 EXCLUDED = 1e30
 
 #: IDA's direct linear solvers: ``auto`` picks ``sparse`` for more than
-#: :data:`problems.structure.DENSE_MAX` constraints and ``dense`` otherwise.
+#: :data:`linalg.schur.DENSE_MAX` constraints and ``dense`` otherwise.
 LINEAR_SOLVERS = ("auto", "dense", "lapackdense", "sparse")
 
 #: ``jacobian`` option -> whether our autodiff iteration matrix is handed to IDA (else IDA
@@ -290,7 +292,7 @@ class IDA(Integrator):
     linsolver : {"auto", "dense", "lapackdense", "sparse"}
         IDA's direct linear solver: dense (SUNDIALS' own or LAPACK's) or sparse
         (SuperLU_MT, one thread, on the compressed autodiff Jacobian); ``auto`` takes
-        ``sparse`` above :data:`problems.structure.DENSE_MAX` constraints.
+        ``sparse`` above :data:`linalg.schur.DENSE_MAX` constraints.
     jacobian : {"autodiff", "difference-quotient"}
         The iteration matrix: ours (forward-mode autodiff, the default) or IDA's
         difference quotients of the residual (for comparison).
@@ -415,15 +417,14 @@ class IDA(Integrator):
         def solve():
             if redundant:
                 recorder.start(t0, y0[:n], y0[n:2 * n])
-                return recorder.trajectory(FAILED, redundant, t0, y0[:n], y0[n:2 * n],
-                                           {"n_steps": 0}, sampling, fail_step=1, fail_time=t0,
-                                           **solver_record)
+                return recorder.trajectory(redundant, t0, y0[:n], y0[n:2 * n], {"n_steps": 0},
+                                           sampling, **solver_record)
             callbacks.reset()
             start = ida.init_step(t0, y0, yp0)
             if not start.success:
                 raise RuntimeError(f"IDA did not initialise: {start.message}")
             recorder.start(t0, y0[:n], y0[n:2 * n])
-            t, y, steps, failure = t0, y0, 0, None
+            t, y, steps, failure = t0, y0, 0, ""
             nfev = njev = 0
             # The binding prints SUNDIALS' own error text (which says where and with what
             # step size IDA gave up); it is captured for the failure message.
@@ -452,11 +453,7 @@ class IDA(Integrator):
             extra = {"callback_s": callbacks.residual_s + callbacks.jacobian_s,
                      "residual_s": callbacks.residual_s, "jacobian_s": callbacks.jacobian_s,
                      "initial_residual": initial_residual}
-            if failure is None:
-                return recorder.trajectory(OK, "", t, y[:n], y[n:2 * n], counts, sampling,
-                                           extra=extra, **solver_record)
-            return recorder.trajectory(FAILED, failure, t, y[:n], y[n:2 * n], counts,
-                                       sampling, fail_step=steps + 1, fail_time=t,
+            return recorder.trajectory(failure, t, y[:n], y[n:2 * n], counts, sampling,
                                        extra=extra, **solver_record)
 
         return solve

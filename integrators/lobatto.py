@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from integrators.base import Grid, Integrator
-from integrators.loop import march
+from integrators.fixed import FixedStep, newton_failure
 from integrators.newton import newton
 from integrators.tableau import lobatto
-from problems.case import Case
+from problems.mechanics import Mechanics
 
 
 @dataclass(frozen=True)
-class LobattoIIIAIIIB(Integrator):
+class LobattoIIIAIIIB(FixedStep):
     """The s-stage Lobatto IIIA-IIIB (SPARK) method of Jay (1996).
 
     For ``q' = H_p(q, p)``, ``p' = -H_q(q, p) + f(t, q, v) - G(q, t)^T lam``,
@@ -41,7 +40,7 @@ class LobattoIIIAIIIB(Integrator):
     warm-started from the previous step's multipliers.
 
     Small systems use the exact autodiff Jacobian of the whole stage system, densely.
-    Large sparse ones (``linear_solver``, :mod:`problems.structure`) use simplified Newton
+    Large sparse ones (``linear_solver``, :mod:`linalg`) use simplified Newton
     with the Jacobian frozen at ``(q_0, p_0)``, without the force Jacobian and the
     derivatives of ``G`` (exact for the linear part of a separable system), and eliminate
     the stage positions and momenta: with ``S_0 = G(q_0) M^{-1} G(q_0)^T`` the corrections
@@ -75,7 +74,7 @@ class LobattoIIIAIIIB(Integrator):
         ``G`` along the motion (about 0.3 for sps-ring at ``h = 0.1``: 20 iterations to
         round-off), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
+        How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01
@@ -97,109 +96,106 @@ class LobattoIIIAIIIB(Integrator):
         if not 2 <= self.stages <= 6:
             raise ValueError(f"LobattoIIIAIIIB: stages = {self.stages} must lie in 2..6")
 
-    def prepare(self, case: Case, grid: Grid):
-        self.check()
-        mech = case.mech
+    def tableau(self):
+        """``A``, ``A_hat``, ``b``, ``c`` as arrays and ``B^{-T}`` of the eliminated
+        multiplier system (class notes)."""
         tab = lobatto(self.stages)
-        s, n, m = self.stages, mech.n, mech.m
         A, Ah, b, c = (jnp.asarray(x) for x in (tab.A, tab.A_hat, tab.b, tab.c))
-        schur = mech.schur(self.linear_solver)
         # Rows of the eliminated multiplier system, divided by h^2 (position constraints
         # at stages 2..s) and by h (the velocity constraint): B = [(A A_hat)[1:]; b].
         B_inv_T = jnp.asarray(np.linalg.inv(np.vstack([(tab.A @ tab.A_hat)[1:], tab.b])).T)
+        return A, Ah, b, c, B_inv_T
 
-        def stage_forces(Q, P, Lam, t, h):
+    def unpack(self, mech: Mechanics, z):
+        """Stage positions, stage momenta, stage multipliers and ``p1`` from the unknowns."""
+        s, n, m = self.stages, mech.n, mech.m
+        Q = z[: s * n].reshape(s, n)
+        P = z[s * n: 2 * s * n].reshape(s, n)
+        Lam = z[2 * s * n: 2 * s * n + s * m].reshape(s, m)
+        return Q, P, Lam, z[2 * s * n + s * m:]
+
+    def simplified(self, mech: Mechanics, schur, q0, t, h, S0):
+        """Simplified Newton's correction for the stage system (see the class notes)."""
+        s, n, m = self.stages, mech.n, mech.m
+        A, Ah, b, c, B_inv_T = self.tableau()
+        Minv = jax.vmap(lambda x: mech.solve_mass(q0, x))
+        weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
+
+        def linear(z, r):
+            Q, P, _, _ = self.unpack(mech, z)
+            ts = t + c * h
+            # G at the current stage positions where it multiplies a residual: only
+            # the Schur block is frozen at q0, which speeds up convergence when G
+            # varies over the step.
+            GQ = jax.vmap(mech.G_times)
+            GQT = jax.vmap(mech.GT)
+            q1 = q0 + h * b @ Minv(P)
+            RQ = r[: s * n].reshape(s, n)
+            RP = r[s * n: 2 * s * n].reshape(s, n)
+            Rp = r[2 * s * n: 2 * s * n + n]
+            Rg = r[2 * s * n + n: 2 * s * n + n + (s - 1) * m].reshape(s - 1, m)
+            Rv = r[2 * s * n + n + (s - 1) * m:]
+            MinvRP = Minv(RP)
+            rhs = jnp.concatenate([
+                Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * A[1:] @ MinvRP),
+                (Rv - mech.G_times(q1, t + h, mech.solve_mass(q0, Rp)))[None],
+            ]) * weights[:, None]                                   # (s, m)
+            dLam = (schur.solve(S0, rhs.T) @ B_inv_T).T              # (s, m)
+            dP = -RP - h * Ah @ GQT(Q, ts, dLam)
+            dQ = -RQ + h * A @ Minv(dP)
+            dp1 = -Rp - h * b @ GQT(Q, ts, dLam)
+            dz = jnp.concatenate([dQ.ravel(), dP.ravel(), dLam.ravel(), dp1])
+            return dz, jnp.max(jnp.abs(z))
+
+        return linear
+
+    def start(self, mech: Mechanics, schur, q0, v0, t0):
+        """``(q0, p0, lam, S0)``: zero multipliers, and the factor of ``G M^{-1} G^T`` at
+        ``q0`` on the structured path (a placeholder on the dense one)."""
+        S0 = jnp.zeros(()) if schur.name == "dense" else schur.factor(q0, t0)
+        return q0, mech.momentum(q0, v0), jnp.zeros(mech.m), S0
+
+    def step(self, mech: Mechanics, schur, carry, t, h):
+        """One step (:class:`integrators.fixed.FixedStep`)."""
+        s = self.stages
+        A, Ah, b, c, _ = self.tableau()
+        dense = schur.name == "dense"
+        q0, p0, lam, S0 = carry
+        v0 = mech.H_p(q0, p0)
+
+        def residual(z):
+            Q, P, Lam, p1 = self.unpack(mech, z)
             V = jax.vmap(mech.H_p)(Q, P)
             ts = t + c * h
             U = (-jax.vmap(mech.H_q)(Q, P) + jax.vmap(mech.external)(ts, Q, V)
                  - jax.vmap(mech.GT)(Q, ts, Lam))
-            return V, U, ts
+            q1 = q0 + h * b @ V
+            return jnp.concatenate([
+                (Q - q0 - h * A @ V).ravel(),
+                (P - p0 - h * Ah @ U).ravel(),
+                p1 - p0 - h * b @ U,
+                jax.vmap(mech.g)(Q[1:], ts[1:]).ravel(),
+                mech.vel_residual(q1, mech.H_p(q1, p1), t + h),
+            ])
 
-        def unpack(z):
-            Q = z[: s * n].reshape(s, n)
-            P = z[s * n: 2 * s * n].reshape(s, n)
-            Lam = z[2 * s * n: 2 * s * n + s * m].reshape(s, m)
-            return Q, P, Lam, z[2 * s * n + s * m:]
+        z0 = jnp.concatenate([(q0 + h * c[:, None] * v0).ravel(), jnp.tile(p0, s),
+                              jnp.tile(lam, s), p0])
+        if dense:
+            sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
+            S1, ok, jac = S0, True, sol.iterations
+        else:
+            sol = newton(residual, z0, self.newton_tol, self.newton_max_iter,
+                         self.simplified(mech, schur, q0, t, h, S0))
+        Q, P, Lam, p1 = self.unpack(mech, sol.z)
+        q1 = q0 + h * b @ jax.vmap(mech.H_p)(Q, P)
+        if not dense:
+            S1 = schur.factor(q1, t + h)   # the next step's S_0
+            ok, jac = S0.ok, 1
+        it = sol.iterations
+        counts = {"n_f_evals": s * (it + 1), "n_jac_evals": jac, "n_newton": it,
+                  "n_lin_solves": it}
+        return (q1, p1, Lam[-1], S1), newton_failure(sol.converged, ok), sol.residual, counts
 
-        def structured(q0, t, h, S0):
-            """Simplified Newton's correction for the stage system (see the class notes)."""
-            G0 = jax.vmap(lambda x: mech.G_times(q0, t, x))
-            G0T = jax.vmap(lambda x: mech.GT(q0, t, x))
-            Minv = jax.vmap(lambda x: mech.solve_mass(q0, x))
-            weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
-
-            def linear(z, r):
-                Q, P, _, _ = unpack(z)
-                ts = t + c * h
-                # G at the current stage positions where it multiplies a residual: only
-                # the Schur block is frozen at q0, which speeds up convergence when G
-                # varies over the step.
-                GQ = jax.vmap(mech.G_times)
-                GQT = jax.vmap(mech.GT)
-                q1 = q0 + h * b @ Minv(P)
-                RQ = r[: s * n].reshape(s, n)
-                RP = r[s * n: 2 * s * n].reshape(s, n)
-                Rp = r[2 * s * n: 2 * s * n + n]
-                Rg = r[2 * s * n + n: 2 * s * n + n + (s - 1) * m].reshape(s - 1, m)
-                Rv = r[2 * s * n + n + (s - 1) * m:]
-                MinvRP = Minv(RP)
-                rhs = jnp.concatenate([
-                    Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * A[1:] @ MinvRP),
-                    (Rv - mech.G_times(q1, t + h, mech.solve_mass(q0, Rp)))[None],
-                ]) * weights[:, None]                                   # (s, m)
-                dLam = (schur.solve(S0, rhs.T) @ B_inv_T).T              # (s, m)
-                dP = -RP - h * Ah @ GQT(Q, ts, dLam)
-                dQ = -RQ + h * A @ Minv(dP)
-                dp1 = -Rp - h * b @ GQT(Q, ts, dLam)
-                dz = jnp.concatenate([dQ.ravel(), dP.ravel(), dLam.ravel(), dp1])
-                return dz, jnp.max(jnp.abs(z))
-
-            return linear
-
-        def step(carry, t, h):
-            q0, p0, lam, S0 = carry
-            v0 = mech.H_p(q0, p0)
-
-            def residual(z):
-                Q, P, Lam, p1 = unpack(z)
-                V, U, ts = stage_forces(Q, P, Lam, t, h)
-                q1 = q0 + h * b @ V
-                return jnp.concatenate([
-                    (Q - q0 - h * A @ V).ravel(),
-                    (P - p0 - h * Ah @ U).ravel(),
-                    p1 - p0 - h * b @ U,
-                    jax.vmap(mech.g)(Q[1:], ts[1:]).ravel(),
-                    mech.vel_residual(q1, mech.H_p(q1, p1), t + h),
-                ])
-
-            z0 = jnp.concatenate([(q0 + h * c[:, None] * v0).ravel(), jnp.tile(p0, s),
-                                  jnp.tile(lam, s), p0])
-            if dense:
-                sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
-                S1, ok, jac = S0, True, sol.iterations
-            else:
-                sol = newton(residual, z0, self.newton_tol, self.newton_max_iter,
-                             structured(q0, t, h, S0))
-            Q, P, Lam, p1 = unpack(sol.z)
-            q1 = q0 + h * b @ jax.vmap(mech.H_p)(Q, P)
-            if not dense:
-                S1 = schur.factor(q1, t + h)   # the next step's S_0
-                ok, jac = S0.ok, 1
-            it = sol.iterations
-            counts = {"n_f_evals": s * (it + 1), "n_jac_evals": jac, "n_newton": it,
-                      "n_lin_solves": it}
-            code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
-            return (q1, p1, Lam[-1], S1), code, sol.residual, counts
-
-        dense = schur.name == "dense"
-
-        # Compiled once; run eagerly, each autodiff operation would compile on its own.
-        @jax.jit
-        def start(q0, v0, t0):
-            S0 = jnp.zeros(()) if dense else schur.factor(q0, t0)
-            return q0, mech.momentum(q0, v0), jnp.zeros(m), S0
-
-        carry0 = start(jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0))
-        return march(mech, grid, self.h, carry0, step,
-                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])),
-                     key=replace(self, h=None), linear_solver=schur.name, pattern_nnz=schur.nnz)
+    def observe(self, mech: Mechanics, carry):
+        """``(q, H_p(q, p))``."""
+        return carry[0], mech.H_p(carry[0], carry[1])

@@ -56,17 +56,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from integrators.base import COUNTERS, FAILED, OK, Grid, Trajectory
+from integrators.base import COUNTERS, Failure, Grid, Status, Trajectory
 from integrators.record import measurer
 from problems.mechanics import Mechanics
-from problems.structure import FALLBACK_MAX
-
-#: Failure codes a step can return (0 is success).
-CODES = {1: "the stage equations did not converge (Newton)", 2: "the state became non-finite",
-         3: ("G M^-1 G^T could not be solved with: not finite, or numerically singular "
-             "(redundant constraints or a singular configuration) with more than "
-             f"{FALLBACK_MAX} constraints on the superlu path; linear_solver=dense or "
-             "banded handles a singular one")}
 
 #: XLA:CPU option: emit any run of operations (while loops included) whose cost model
 #: reads and writes at most this many bytes per pass as one native kernel. The default,
@@ -148,7 +140,8 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
             new, code, resid, inc = step(carry, t0 + k * h, h)
             q, v = observe(new)
             finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
-            code = jnp.where(code != 0, code, jnp.where(finite, 0, 2)).astype(jnp.int32)
+            code = jnp.where(code != 0, code,
+                             jnp.where(finite, 0, Failure.NON_FINITE)).astype(jnp.int32)
             good = code == 0
             carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
             k1 = k + good.astype(k.dtype)
@@ -213,7 +206,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         The method's state at ``t0`` (positions, momenta, warm starts...).
     step : callable
         ``step(carry, t, h) -> (carry1, code, residual, counts)``: one step from ``t``;
-        ``code`` is 0 on success or a key of :data:`CODES`; ``residual`` the final Newton
+        ``code`` is 0 on success or a :class:`Failure`; ``residual`` the final Newton
         residual (for the message); ``counts`` increments of the work counters.
     observe : callable
         ``observe(carry) -> (q, v)``.
@@ -268,10 +261,10 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         counts = {"n_steps": k, **{key: int(val) for key, val in zip(WORK, counts)}}
         solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
         if code == 0:
-            return Trajectory(OK, "", t_final, q, v, windows, samples, counts, **solver)
-        message = (f"{CODES[code]} at step {k + 1} (t = {t_final:.6g} -> "
+            return Trajectory(Status.OK, "", t_final, q, v, windows, samples, counts, **solver)
+        message = (f"{Failure(code).message} at step {k + 1} (t = {t_final:.6g} -> "
                    f"{t_final + plan.h:.6g}); last Newton residual {float(resid):.3e}")
-        return Trajectory(FAILED, message, t_final, q, v, windows, samples, counts,
+        return Trajectory(Status.FAILED, message, t_final, q, v, windows, samples, counts,
                           fail_step=k + 1, fail_time=t_final, **solver)
 
     solve.compiled = compiled

@@ -7,7 +7,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from problems.structure import solve
+from linalg.dense import solve
 
 EPS = float(jnp.finfo(jnp.float64).eps)
 

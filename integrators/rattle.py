@@ -2,21 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 
-from integrators.base import Grid, Integrator
-from integrators.loop import march
+from integrators.fixed import FixedStep, newton_failure
 from integrators.newton import newton
-from problems.case import Case
-from problems.structure import solve
+from linalg.dense import solve
+from problems.mechanics import Mechanics
 
 
 @dataclass(frozen=True)
-class Rattle(Integrator):
+class Rattle(FixedStep):
     """RATTLE (Andersen 1983; Leimkuhler and Skeel 1994).
 
     One step from ``(q0, p0)`` with ``F(t, q, p) = -H_q(q, p) + f(t, q, H_p(q, p))``:
@@ -39,7 +37,7 @@ class Rattle(Integrator):
     otherwise the unknown is ``(p_{1/2}, q_1, lambda)``. The velocity projection is linear
     in ``mu`` (one m x m solve) because ``H_p`` is linear in ``p``.
 
-    Large sparse systems (``linear_solver``, :mod:`problems.structure`) use simplified
+    Large sparse systems (``linear_solver``, :mod:`linalg`) use simplified
     Newton instead: the Jacobian is replaced by ``-h^2/2 S_0`` with the Schur complement
     ``S_0 = G(q_0) M^{-1} G(q_0)^T``, whose factor is the previous step's velocity
     projection matrix, so each step factorises ``S`` once (at ``q_1``, for the velocity
@@ -60,7 +58,7 @@ class Rattle(Integrator):
         (on sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
         forces peak, it needed more than 20 iterations), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        How systems with ``G M^{-1} G^T`` are solved (:func:`problems.structure.schur`).
+        How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 
     h: float = 0.01
@@ -73,13 +71,19 @@ class Rattle(Integrator):
     enforces: ClassVar[tuple[str, ...]] = ("position", "velocity")
     nominal_order: ClassVar[int] = 2
 
-    def prepare(self, case: Case, grid: Grid):
-        self.check()
-        mech = case.mech
-        n, m = mech.n, mech.m
+    def forces(self, mech: Mechanics):
+        """``F(t, q, p) = -H_q(q, p) + f(t, q, H_p(q, p))``."""
 
         def F(t, q, p):
             return -mech.H_q(q, p) + mech.external(t, q, mech.H_p(q, p))
+
+        return F
+
+    def position(self, mech: Mechanics, schur):
+        """The position projection ``(q0, p0, F0, S0, lam, t, h) -> (p_half, q1, sol,
+        extra_f)`` for the system's structure (``extra_f``: whether each residual evaluates
+        ``F``)."""
+        n, F = mech.n, self.forces(mech)
 
         def position_separable(q0, p0, F0, G0, lam, t, h):
             def half(lam):
@@ -141,43 +145,40 @@ class Rattle(Integrator):
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
             return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
 
-        schur = mech.schur(self.linear_solver)
         if schur.name == "dense":
-            position = position_separable if mech.separable else position_general
+            return position_separable if mech.separable else position_general
+        return position_separable_structured if mech.separable else position_structured
+
+    def start(self, mech: Mechanics, schur, q0, v0, t0):
+        """``(q0, p0, F0, S0, lam)``: ``S0`` is ``G(q0)`` on the dense path, the factor of
+        ``G M^{-1} G^T`` at ``q0`` otherwise; the multipliers start at zero."""
+        p0 = mech.momentum(q0, v0)
+        first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
+        return q0, p0, self.forces(mech)(t0, q0, p0), first, jnp.zeros(mech.m)
+
+    def step(self, mech: Mechanics, schur, carry, t, h):
+        """One step (:class:`integrators.fixed.FixedStep`)."""
+        q0, p0, F0, S0, lam = carry
+        p_half, q1, sol, extra_f = self.position(mech, schur)(q0, p0, F0, S0, lam, t, h)
+        t1 = t + h
+        F1 = self.forces(mech)(t1, q1, p_half)
+        base = p_half + 0.5 * h * F1
+        rhs = mech.vel_residual(q1, mech.H_p(q1, base), t1)
+        if schur.name == "dense":
+            G1 = mech.G(q1, t1)
+            mu = solve(0.5 * h * G1 @ mech.solve_mass(q1, G1.T), rhs)
+            p1, S1, ok = base - 0.5 * h * G1.T @ mu, G1, True
         else:
-            position = position_separable_structured if mech.separable else position_structured
+            S1 = schur.factor(q1, t1)
+            mu = schur.solve(S1, rhs) * (2.0 / h)
+            p1, ok = base - 0.5 * h * mech.GT(q1, t1, mu), S1.ok
+        it = sol.iterations
+        # G1 (or the factor of S1) is the next step's (first same as last), and so is
+        # F1 with a separable H; the general projection evaluates F once per residual.
+        counts = {"n_f_evals": 1 + extra_f * (it + 1), "n_jac_evals": it + 1,
+                  "n_newton": it, "n_lin_solves": it + 1}
+        return (q1, p1, F1, S1, sol.z), newton_failure(sol.converged, ok), sol.residual, counts
 
-        def step(carry, t, h):
-            q0, p0, F0, S0, lam = carry
-            p_half, q1, sol, extra_f = position(q0, p0, F0, S0, lam, t, h)
-            t1 = t + h
-            F1 = F(t1, q1, p_half)
-            base = p_half + 0.5 * h * F1
-            rhs = mech.vel_residual(q1, mech.H_p(q1, base), t1)
-            if schur.name == "dense":
-                G1 = mech.G(q1, t1)
-                mu = solve(0.5 * h * G1 @ mech.solve_mass(q1, G1.T), rhs)
-                p1, S1, ok = base - 0.5 * h * G1.T @ mu, G1, True
-            else:
-                S1 = schur.factor(q1, t1)
-                mu = schur.solve(S1, rhs) * (2.0 / h)
-                p1, ok = base - 0.5 * h * mech.GT(q1, t1, mu), S1.ok
-            it = sol.iterations
-            # G1 (or the factor of S1) is the next step's (first same as last), and so is
-            # F1 with a separable H; the general projection evaluates F once per residual.
-            counts = {"n_f_evals": 1 + extra_f * (it + 1), "n_jac_evals": it + 1,
-                      "n_newton": it, "n_lin_solves": it + 1}
-            code = jnp.where(ok, jnp.where(sol.converged, 0, 1), 3)
-            return (q1, p1, F1, S1, sol.z), code, sol.residual, counts
-
-        # Compiled once; run eagerly, each autodiff operation would compile on its own.
-        @jax.jit
-        def start(q0, v0, t0):
-            p0 = mech.momentum(q0, v0)
-            first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
-            return q0, p0, F(t0, q0, p0), first, jnp.zeros(m)
-
-        carry0 = start(jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0))
-        return march(mech, grid, self.h, carry0, step,
-                     lambda carry: (carry[0], mech.H_p(carry[0], carry[1])),
-                     key=replace(self, h=None), linear_solver=schur.name, pattern_nnz=schur.nnz)
+    def observe(self, mech: Mechanics, carry):
+        """``(q, H_p(q, p))``."""
+        return carry[0], mech.H_p(carry[0], carry[1])

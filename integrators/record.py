@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from integrators.base import Grid, Trajectory
+from integrators.base import Grid, Status, Trajectory
 from problems.mechanics import Mechanics
 
 #: Host memory one batch of points may take (bytes); fixes the batch length.
@@ -169,15 +169,19 @@ class Recorder:
         keep = self.filled
         return {"t": self.samp_t[keep], "q": self.samp_q[keep], "v": self.samp_v[keep]}
 
-    def trajectory(self, status: str, message: str, t_final: float, q_final: np.ndarray,
+    def trajectory(self, failure: str, t_final: float, q_final: np.ndarray,
                    v_final: np.ndarray, counts: dict[str, int], sampling: str,
-                   fail_step: int | None = None, fail_time: float | None = None,
                    extra: dict[str, float] | None = None, linear_solver: str = "dense",
                    pattern_nnz: int | None = None) -> Trajectory:
-        """The :class:`Trajectory` of the recorded run."""
+        """The :class:`Trajectory` of the recorded run, which ended at ``t_final`` after
+        ``counts["n_steps"]`` steps: ``ok`` for an empty ``failure``, else ``failed`` with
+        that message at the next step."""
         q_final = np.asarray(q_final)
         assert q_final.dtype == np.float64, "the backend must hand over float64 states"
-        fail_time = None if fail_time is None or math.isnan(fail_time) else float(fail_time)
-        return Trajectory(status, message, float(t_final), q_final, np.asarray(v_final),
+        status, fail_step, fail_time = Status.OK, None, None
+        if failure:
+            status, fail_step = Status.FAILED, counts["n_steps"] + 1
+            fail_time = None if math.isnan(t_final) else float(t_final)
+        return Trajectory(status, failure, float(t_final), q_final, np.asarray(v_final),
                           self.windows(), self.samples(), dict(counts), sampling,
                           fail_step, fail_time, dict(extra or {}), linear_solver, pattern_nnz)

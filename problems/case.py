@@ -120,7 +120,7 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     Positions by the Gauss-Newton iteration ``q <- q - M^{-1} G^T (G M^{-1} G^T)^{-1} g``;
     velocities by the one linear projection with the same metric. The solves with
     ``G M^{-1} G^T`` are the integrators' (:meth:`Mechanics.schur`, chosen by structure),
-    under their one policy for redundant constraints (:mod:`problems.structure`).
+    under their one policy for redundant constraints (:mod:`linalg.dense`).
     """
     schur = mech.schur("auto")
     step = _projection_step(mech, schur)

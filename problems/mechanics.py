@@ -18,7 +18,7 @@ anything itself.
 
 The structure of the constraints is derived here too: the sparsity pattern of ``G`` by
 tracing ``g`` (:attr:`Mechanics.G_coloring`) and its values by compressed autodiff
-(:meth:`Mechanics.G_values`), which :mod:`problems.structure` turns into linear algebra
+(:meth:`Mechanics.G_values`), which :mod:`linalg` turns into linear algebra
 whose cost grows with the number of entries of ``G`` rather than with ``m n``.
 """
 
@@ -36,6 +36,8 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
+from linalg.schur import choose  # noqa: E402
 
 Array = jax.Array
 
@@ -222,6 +224,11 @@ class Mechanics:
             warnings.simplefilter("ignore", asdex.DenseColoringWarning)
             return asdex.jacobian_coloring_from_sparsity(pattern)
 
+    def G_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns of the structural nonzeros of ``G`` (:attr:`G_coloring`'s)."""
+        sparsity = self.G_coloring.sparsity
+        return np.asarray(sparsity.rows), np.asarray(sparsity.cols)
+
     def G_values(self, q: Array, t: Array) -> Array:
         """The entries of ``G(q, t)`` in the order of :attr:`G_coloring` (compressed autodiff)."""
         coloring = self.G_coloring
@@ -229,11 +236,11 @@ class Mechanics:
         return asdex.decompress_data(compressed, coloring)
 
     def schur(self, kind: str = "auto"):
-        """The solver for ``G M^{-1} G^T`` (see :func:`problems.structure.schur`), built once."""
-        from problems.structure import schur
+        """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`), built once."""
         cache = self.__dict__.setdefault("_schur", {})
         if kind not in cache:
-            cache[kind] = schur(self, kind)
+            cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
+                                 self.mass_diagonal, self.G_pattern, self.G_values)
         return cache[kind]
 
     def g_t(self, q: Array, t: Array) -> Array:
@@ -263,7 +270,7 @@ class Mechanics:
         ``a = M^{-1} (force - G^T lam)``. ``stab`` is an extra acceleration-level right-hand
         side (Baumgarte terms); ``None`` means zero. ``schur`` is the solver of
         :meth:`schur` to use (default: dense); redundant constraints are handled by its
-        policy (:mod:`problems.structure`).
+        policy (:mod:`linalg.dense`).
 
         Returns
         -------

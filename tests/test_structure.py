@@ -8,7 +8,7 @@ import pytest
 import problems
 from integrators.ida import FORMULATIONS, consistent_values
 from problems.mechanics import System
-from problems.structure import SparseJacobian
+from linalg.pattern import SparseJacobian
 from helpers import solve
 
 STRUCTURED = ("banded", "superlu")
@@ -144,7 +144,7 @@ def test_one_policy_for_redundant_constraints(monkeypatch):
     # solve for up to FALLBACK_MAX constraints; above that SuperLU fails the run with
     # the policy's message instead of returning meaningless states.
     import integrators
-    import problems.structure
+    import linalg.sparse
     from integrators import Grid
 
     def run(kind):
@@ -158,7 +158,7 @@ def test_one_policy_for_redundant_constraints(monkeypatch):
         traj = run(kind)
         assert traj.status == "ok", traj.message
         assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-12
-    monkeypatch.setattr(problems.structure, "FALLBACK_MAX", 0)
+    monkeypatch.setattr(linalg.sparse, "FALLBACK_MAX", 0)
     assert run("banded").status == "ok"
     traj = run("superlu")
     assert traj.status == "failed"
@@ -169,7 +169,7 @@ def test_one_policy_for_redundant_constraints(monkeypatch):
 def test_banded_cholesky_drops_dependent_rows():
     # A singular band matrix (row 3 = row 1 + row 2 of G): the dropped row's unknown is
     # zero and the others solve the consistent system exactly.
-    from problems.structure import band_cholesky, band_solve
+    from linalg.banded import band_cholesky, band_solve
     rng = np.random.default_rng(0)
     G = np.zeros((6, 9))
     for i in range(6):
@@ -221,10 +221,8 @@ def test_a_diverged_iterate_fails_the_superlu_solve_as_data():
     # the host callback.
     import jax.numpy as jnp
 
-    from problems.structure import schur
-
     case = problems.make("chain:N=16")
-    S = schur(case.mech, "superlu")
+    S = case.mech.schur("superlu")
     q = jnp.asarray(case.q0)
     good = S.factor(q, 0.0)
     rhs = jnp.ones(case.mech.m)

@@ -1,0 +1,176 @@
+"""One contract for fixed-step methods: ``start``, ``step``, ``observe``, and one ``prepare``.
+
+A fixed-step method is a :class:`FixedStep`: a frozen dataclass of its options (``h``
+among them) and its traits, which supplies three pure functions of arrays,
+
+- ``start(mech, schur, q0, v0, t0) -> carry``: the method's state at ``t0`` (a pytree:
+  positions, momenta, warm starts, a factorisation to reuse...);
+- ``step(mech, schur, carry, t, h) -> (carry1, code, residual, counts)``: one step from
+  ``t`` to ``t + h``; ``code`` is :attr:`Failure.NONE` or why the step failed,
+  ``residual`` the last Newton residual (for the message), ``counts`` the increments of
+  the work counters (:data:`integrators.base.COUNTERS` but ``n_steps``);
+- ``observe(mech, carry) -> (q, v)``.
+
+``mech`` (:class:`problems.mechanics.Mechanics`) and ``schur`` (the solver for
+``G M^{-1} G^T`` that :meth:`FixedStep.linear_algebra` picks) are fixed for a run; the
+arrays are the only things that change. The one shared :meth:`FixedStep.prepare` checks
+the options, picks the linear algebra, compiles ``start`` once and hands ``step`` and
+``observe`` to the compiled time loop (:func:`integrators.loop.march`); :class:`Stepper`
+drives the same functions by hand.
+
+Nothing in ``step`` branches in Python on the values of its arrays (failures are codes,
+selected with ``jnp.where``), so an ensemble of initial states is a leading axis away:
+``jax.vmap`` over ``(q0, v0)`` in ``start`` and over ``carry`` in ``step``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from integrators.base import COUNTERS, Failure, Grid, Integrator
+from integrators.loop import WORK, march
+from problems.case import Case
+from problems.mechanics import Mechanics
+
+
+def newton_failure(converged: jax.Array, solvable: jax.Array | bool = True) -> jax.Array:
+    """The code of a step whose equations Newton's method solved: :attr:`Failure.SINGULAR`
+    where ``G M^{-1} G^T`` could not be solved with, else :attr:`Failure.NEWTON` where
+    Newton did not converge, else :attr:`Failure.NONE`."""
+    return jnp.where(solvable, jnp.where(converged, Failure.NONE, Failure.NEWTON),
+                     Failure.SINGULAR)
+
+
+@dataclass(frozen=True)
+class FixedStep(Integrator):
+    """Base class of the fixed-step methods run by the shared compiled loop.
+
+    Subclasses add their options as dataclass fields (``h`` first: the step size, shrunk
+    to divide the horizon evenly) and implement :meth:`start`, :meth:`step` and
+    :meth:`observe` (see the module notes). A method with a ``linear_solver`` option gets
+    that solver for ``G M^{-1} G^T``; others get the one chosen by structure.
+    """
+
+    def linear_algebra(self, mech: Mechanics):
+        """The solver for ``G M^{-1} G^T`` that the steps use (:meth:`Mechanics.schur`)."""
+        return mech.schur(getattr(self, "linear_solver", "auto"))
+
+    def start(self, mech: Mechanics, schur, q0: jax.Array, v0: jax.Array, t0: jax.Array) -> Any:
+        """The carry at ``t0`` from consistent ``(q0, v0)``."""
+        raise NotImplementedError
+
+    def step(self, mech: Mechanics, schur, carry: Any, t: jax.Array, h: jax.Array
+             ) -> tuple[Any, jax.Array, jax.Array, dict[str, jax.Array]]:
+        """One step: ``(carry1, code, residual, counts)``."""
+        raise NotImplementedError
+
+    def observe(self, mech: Mechanics, carry: Any) -> tuple[jax.Array, jax.Array]:
+        """Positions and velocities of a carry."""
+        raise NotImplementedError
+
+    def prepare(self, case: Case, grid: Grid):
+        self.check()
+        mech = case.mech
+        schur = self.linear_algebra(mech)
+        # Compiled once; run eagerly, each autodiff operation would compile on its own.
+        carry0 = jax.jit(partial(self.start, mech, schur))(
+            jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
+        return march(mech, grid, self.h, carry0, partial(self.step, mech, schur),
+                     partial(self.observe, mech), key=replace(self, h=None),
+                     linear_solver=schur.name, pattern_nnz=schur.nnz)
+
+
+class State(NamedTuple):
+    """A manually stepped run: the time, the method's carry and the work so far
+    (:data:`integrators.base.COUNTERS`)."""
+
+    t: jax.Array
+    carry: Any
+    counts: dict[str, jax.Array]
+
+
+class Stepper:
+    """Drive a fixed-step method by hand: :meth:`init`, then :meth:`step` as often as wanted.
+
+    The same ``start``, ``step`` and ``observe`` as the compiled loop of
+    :meth:`FixedStep.prepare`, each compiled once, with the loop's rule for failures: a
+    step that fails (its code, or a non-finite state) leaves the state as it was and
+    returns the code. The step size may change from call to call; the time advances by
+    ``t + h`` (the compiled loop takes ``t0 + k h``, which differs at round-off, and only
+    for problems whose equations depend on ``t``). :meth:`step` is a pure function of
+    arrays, so ``jax.vmap(stepper.step)`` steps a batch of states.
+
+    Parameters
+    ----------
+    method : FixedStep
+        The method and its options (checked here).
+    case : problems.Case
+        The problem and its initial values.
+
+    Examples
+    --------
+    RATTLE on the pendulum for 100 steps of its default ``h``:
+
+    >>> import integrators, problems
+    >>> from integrators.base import Failure
+    >>> stepper = integrators.Stepper(integrators.make("rattle"), problems.make("pendulum"))
+    >>> state = stepper.init()
+    >>> for _ in range(100):
+    ...     state, code = stepper.step(state)
+    ...     assert code == Failure.NONE, Failure(int(code)).message
+    >>> q, v = stepper.observe(state)
+    >>> round(float(state.t), 12), int(state.counts["n_steps"])
+    (1.0, 100)
+    """
+
+    def __init__(self, method: FixedStep, case: Case):
+        if not isinstance(method, FixedStep):
+            raise TypeError(f"{type(method).__name__} is not a fixed-step method (FixedStep)")
+        method.check()
+        self.method, self.case = method, case
+        mech = case.mech
+        self.schur = method.linear_algebra(mech)
+        self._start = jax.jit(partial(method.start, mech, self.schur))
+        self._observe = partial(method.observe, mech)
+        self._step = jax.jit(self._advance)
+
+    def init(self, q0=None, v0=None, t0=None) -> State:
+        """The state at ``t0`` (default: the case's initial values and time)."""
+        case = self.case
+        t0 = jnp.asarray(case.t0 if t0 is None else t0, jnp.float64)
+        carry = self._start(jnp.asarray(case.q0 if q0 is None else q0, jnp.float64),
+                            jnp.asarray(case.v0 if v0 is None else v0, jnp.float64), t0)
+        return State(t0, carry, {key: jnp.zeros((), jnp.int64) for key in COUNTERS})
+
+    def step(self, state: State, h=None) -> tuple[State, jax.Array]:
+        """One step of size ``h`` (default: the method's): ``(state1, code)``.
+
+        ``code`` is a :class:`Failure` code (0 where the step succeeded); on failure
+        ``state1`` is ``state`` with the work of the attempt counted.
+        """
+        return self._step(state, jnp.asarray(self.method.h if h is None else h, jnp.float64))
+
+    def _advance(self, state: State, h: jax.Array) -> tuple[State, jax.Array]:
+        mech, schur = self.case.mech, self.schur
+        carry, code, _, inc = self.method.step(mech, schur, state.carry, state.t, h)
+        q, v = self._observe(carry)
+        finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
+        code = jnp.where(code != 0, code,
+                         jnp.where(finite, 0, Failure.NON_FINITE)).astype(jnp.int32)
+        good = code == 0
+        counts = dict(state.counts)
+        counts["n_steps"] = counts["n_steps"] + good
+        for key in WORK:
+            counts[key] = counts[key] + jnp.asarray(inc.get(key, 0), jnp.int64)
+        new = State(state.t + h, carry, counts)
+        kept = State(state.t, state.carry, counts)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, kept), code
+
+    def observe(self, state: State) -> tuple[jax.Array, jax.Array]:
+        """Positions and velocities of ``state``."""
+        return self._observe(state.carry)

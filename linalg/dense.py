@@ -1,0 +1,150 @@
+"""Dense solves under the one policy for rank deficiency, and the dense Schur solver.
+
+Redundant constraints
+---------------------
+One policy for every family and path: the *basic* solution. Systems are first equilibrated
+by a diagonal scaling (``S`` to unit diagonal; a general matrix by powers of two, which is
+exact), so that constraints in different units are not taken for dependent ones. A pivot
+below :data:`RANK_RTOL` (relative to the largest pivot of a dense factorisation, to the
+unit diagonal of the equilibrated ``S`` in the banded one; a non-finite pivot counts as
+small) marks a numerically dependent constraint: ``G`` has rank below ``m`` (redundant
+constraints, or a singular configuration). Its multiplier is set to zero and the others
+solve the remaining equations, which for a consistent system is an exact solution, whose
+multipliers give the same, unique constraint force ``G^T lambda`` as any other. The dense
+path finds the dependent constraints by QR with column pivoting (:func:`basic_solve`); the
+banded Cholesky drops them as it meets them, in its elimination order, at no extra cost
+and without leaving the compiled loop (:func:`linalg.banded.band_cholesky`); SuperLU,
+which cannot, hands a singular ``S`` to a dense basic solve on the host for up to
+:data:`linalg.sparse.FALLBACK_MAX` constraints, and above that the step fails with that
+message.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+#: Pivot ratio below which a factorisation is taken as numerically rank deficient.
+RANK_RTOL = 1e-12
+
+
+def power_of_two_scale(x: jax.Array) -> jax.Array:
+    """``2^-round(log2 x)`` for ``x > 0`` (1 where ``x`` is 0): scaling by it is exact."""
+    return jnp.where(x > 0, jnp.exp2(-jnp.round(jnp.log2(jnp.where(x > 0, x, 1.0)))), 1.0)
+
+
+def basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Array:
+    """A basic solution of ``A x = b`` by QR with column pivoting, for rank-deficient ``A``.
+
+    ``A P = Q R`` with ``|R_kk|`` non-increasing; columns whose ``|R_kk|`` falls below
+    ``rtol |R_00|`` are numerically dependent and their unknowns are set to zero, the
+    leading triangle gives the others. For a consistent system this is an exact solution
+    (not the minimum-norm one); ``b`` may be a vector or a matrix of columns.
+    """
+    Q, R, perm = jax.scipy.linalg.qr(A, pivoting=True)
+    d = jnp.abs(jnp.diag(R))
+    keep = d > rtol * d[0]
+    mask = keep[:, None] if b.ndim == 2 else keep
+    R = jnp.where(keep[:, None], R, jnp.eye(A.shape[0]))
+    y = jax.scipy.linalg.solve_triangular(R, jnp.where(mask, Q.T @ b, 0.0))
+    return jnp.zeros_like(y).at[perm].set(y)
+
+
+def solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """``A^{-1} b`` by LU of the equilibrated ``A``; the basic solution if rank deficient.
+
+    A 1 x 1 system is a division: a LAPACK call is opaque to XLA's fusion and costs
+    microseconds, most of a small problem's step for a single constraint. Otherwise
+    ``D_r A D_c`` (power-of-two row and column scalings, exact) is factorised by LU with
+    partial pivoting; when its smallest pivot is below :data:`RANK_RTOL` times the largest
+    (or not finite) the solve switches to :func:`basic_solve` on the equilibrated system
+    (see the module notes).
+    """
+    if A.shape[0] == 1:
+        return b / A[0, 0]
+    r = power_of_two_scale(jnp.max(jnp.abs(A), axis=1))
+    c = power_of_two_scale(jnp.max(jnp.abs(A * r[:, None]), axis=0))
+    As = A * r[:, None] * c[None, :]
+    rb = b * (r[:, None] if b.ndim == 2 else r)
+    lu, piv = jax.scipy.linalg.lu_factor(As)
+    pivots = jnp.abs(jnp.diag(lu))
+    deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
+    y = jax.lax.cond(deficient, lambda: basic_solve(As, rb),
+                     lambda: jax.scipy.linalg.lu_solve((lu, piv), rb))
+    return y * (c[:, None] if b.ndim == 2 else c)
+
+
+def unit_diagonal(d: jax.Array) -> jax.Array:
+    """``1 / sqrt(d)`` where ``d > 0`` (1 elsewhere): the scaling of ``S`` to unit diagonal."""
+    return jnp.where(d > 0, 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0)), 1.0)
+
+
+def spd_solve(S: jax.Array, rhs: jax.Array) -> jax.Array:
+    """``S^{-1} rhs`` for a symmetric positive semidefinite ``S``, under the one policy.
+
+    ``S`` is scaled to unit diagonal (``D S D``) and factorised by Cholesky; if its
+    smallest squared pivot is below :data:`RANK_RTOL` times the largest, or the factor
+    breaks down, the basic solution of the scaled system is used (:func:`basic_solve`).
+    """
+    D = unit_diagonal(jnp.diag(S))
+    Ss = S * D[:, None] * D[None, :]
+    Dr = D[:, None] if rhs.ndim == 2 else D
+    if S.shape[0] == 1:
+        return rhs / S[0, 0]
+    factor = jax.scipy.linalg.cho_factor(Ss, lower=True)
+    pivots = jnp.diag(factor[0]) ** 2
+    deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
+    y = jax.lax.cond(deficient, lambda: basic_solve(Ss, Dr * rhs),
+                     lambda: jax.scipy.linalg.cho_solve(factor, Dr * rhs))
+    return Dr * y
+
+
+class Factor(NamedTuple):
+    """A factorised ``S``: the solver's arrays, ``||S||_inf`` (bounded above) and whether
+    ``S`` can be solved with (``ok``: false for a singular ``S`` that SuperLU cannot hand
+    to the dense solve, and for a factor with non-finite values)."""
+
+    data: Any
+    norm: jax.Array
+    ok: jax.Array
+
+
+class Schur:
+    """Solves with ``S = G M^{-1} G^T``: ``factor(q, t)`` once, then ``solve`` any number of times.
+
+    This class is the dense solver (``S`` formed and factorised by Cholesky under the rank
+    policy, :func:`spd_solve`) and the interface of the structured ones.
+
+    Parameters
+    ----------
+    G : callable
+        ``G(q, t) -> (m, n)``, the constraint Jacobian.
+    solve_mass : callable
+        ``solve_mass(q, b) -> M(q)^{-1} b`` for a matrix ``b`` of columns.
+
+    Attributes
+    ----------
+    name : str
+        ``"dense"``, ``"banded"`` or ``"superlu"`` (recorded with every run).
+    nnz : int or None
+        Structural nonzeros of ``G`` (``None`` on the dense path, which needs no pattern).
+    """
+
+    name = "dense"
+    nnz: int | None = None
+
+    def __init__(self, G: Callable[[jax.Array, jax.Array], jax.Array],
+                 solve_mass: Callable[[jax.Array, jax.Array], jax.Array]):
+        self.G, self.solve_mass = G, solve_mass
+
+    def factor(self, q: jax.Array, t: jax.Array) -> Factor:
+        G = self.G(q, t)
+        S = G @ self.solve_mass(q, G.T)
+        return Factor(S, jnp.max(jnp.sum(jnp.abs(S), axis=1), initial=0.0), jnp.asarray(True))
+
+    def solve(self, F: Factor, rhs: jax.Array) -> jax.Array:
+        """``S^{-1} rhs`` for a vector or an ``(m, k)`` matrix of columns."""
+        return spd_solve(F.data, rhs)
+

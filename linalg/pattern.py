@@ -1,0 +1,201 @@
+"""Sparsity patterns: compressed Jacobians and the structure of ``S = G M^{-1} G^T``.
+
+Patterns are structural (traced from the functions, not read from values) and found once;
+what they give (colourings, orderings, index arrays) is what lets the compiled loop work
+with ``O(nnz)`` gathers instead of dense ``m x n`` matrices.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from typing import Callable
+
+import asdex
+import jax
+import jax.experimental.sparse as jsparse
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+#: A row of ``G`` with more entries than this (and than four times the median row) joins
+#: the dense border of the banded solver.
+BORDER_MIN = 32
+
+
+def gather(a: jax.Array, index: jax.Array) -> jax.Array:
+    """``a[index]`` along the first axis, as a gather with a flat index.
+
+    XLA:CPU compiles a loop into one native kernel only if its gathers take a flat index
+    (measured: a ``(k, 2)`` index array keeps the loop out of the kernel).
+    """
+    return jnp.take(a, index.ravel(), axis=0).reshape(index.shape + a.shape[1:])
+
+
+class SparseJacobian:
+    """The Jacobian of ``f: R^n -> R^m`` by compressed autodiff, its pattern traced from ``f``.
+
+    Column colouring (forward mode) fails on a Jacobian with dense rows, row colouring
+    (reverse mode) on one with dense columns, and a ring's hub makes both: its constraint
+    rows involve every point and their multipliers act on every point. Rows and columns
+    with more than :data:`BORDER_MIN` entries (and four times the median) are therefore
+    evaluated one by one (a reverse pass per dense row, a forward pass per dense column),
+    and the rest of the pattern is coloured by columns (greedy colouring of the column
+    intersection graph): about ``c + d`` passes for ``c`` colours and ``d`` dense lines
+    instead of ``n``.
+
+    Parameters
+    ----------
+    f : callable
+        ``f(x) -> (m,)``, JAX-traceable.
+    x : array
+        A point of the right shape (the pattern is structural, not taken from values).
+    """
+
+    def __init__(self, f: Callable[[jax.Array], jax.Array], x: jax.Array):
+        pattern = asdex.jacobian_sparsity(f, x)
+        self.shape = (pattern.m, pattern.n)
+        self.rows = np.asarray(pattern.rows, dtype=np.int64)
+        self.cols = np.asarray(pattern.cols, dtype=np.int64)
+        self.nnz = len(self.rows)
+        m, n = self.shape
+        row_count = np.bincount(self.rows, minlength=m)
+        col_count = np.bincount(self.cols, minlength=n)
+        dense_rows = row_count > max(BORDER_MIN, 4 * np.median(row_count))
+        dense_cols = col_count > max(BORDER_MIN, 4 * np.median(col_count))
+        self.dense_rows = np.flatnonzero(dense_rows)
+        self.dense_cols = np.flatnonzero(dense_cols)
+        rest = ~dense_rows[self.rows] & ~dense_cols[self.cols]
+        reduced = sp.coo_matrix((np.ones(rest.sum()), (self.rows[rest], self.cols[rest])),
+                                shape=(m, n)).toarray() if m * n <= 1 << 22 else \
+            jsparse.BCOO((jnp.ones(rest.sum()), jnp.asarray(np.stack(
+                [self.rows[rest], self.cols[rest]], 1))), shape=(m, n))
+        colour = np.asarray(asdex.jacobian_coloring_from_sparsity(reduced, mode="fwd").colors)
+        self.n_colours = int(colour.max(initial=-1)) + 1
+        seeds = np.zeros((self.n_colours, n))
+        seeds[colour[self.cols[rest]], self.cols[rest]] = 1.0
+        self.seeds = jnp.asarray(seeds)
+        # Where each entry of the pattern is read from, in the stacked passes
+        # [J seeds^T (m x c) | J e_j for dense j (m x d_c)] and [e_i^T J (d_r x n)].
+        where_col = np.full(n, -1)
+        where_col[self.dense_cols] = np.arange(len(self.dense_cols))
+        where_row = np.full(m, -1)
+        where_row[self.dense_rows] = np.arange(len(self.dense_rows))
+        forward = np.where(dense_cols[self.cols], self.n_colours + where_col[self.cols],
+                           colour[self.cols].clip(0))
+        from_rows = dense_rows[self.rows]
+        self.forward_index = jnp.asarray(self.rows * (self.n_colours + len(self.dense_cols))
+                                         + forward)
+        self.reverse_index = jnp.asarray(where_row[self.rows].clip(0) * n + self.cols)
+        self.from_rows = jnp.asarray(from_rows)
+        self.f = f
+
+    def values(self, x: jax.Array, f: Callable[[jax.Array], jax.Array] | None = None) -> jax.Array:
+        """The Jacobian's entries at ``x``, in the order of ``rows``, ``cols``.
+
+        ``f`` defaults to the traced function; another with the same pattern (the same
+        function with other parameters) may be passed.
+        """
+        f = self.f if f is None else f
+        directions = jnp.concatenate([self.seeds, jnp.eye(self.shape[1])[self.dense_cols]])
+        forward = jax.vmap(lambda d: jax.jvp(f, (x,), (d,))[1])(directions).T
+        values = gather(forward.ravel(), self.forward_index)
+        if len(self.dense_rows):
+            pullback = jax.vjp(f, x)[1]
+            reverse = jax.vmap(lambda e: pullback(e)[0])(jnp.eye(self.shape[0])[self.dense_rows])
+            values = jnp.where(self.from_rows, gather(reverse.ravel(), self.reverse_index),
+                               values)
+        return values
+
+
+class Pattern:
+    """The structure of ``S`` built once from ``G``'s sparsity (for a constant diagonal mass).
+
+    Rows of ``G`` with many entries form the dense *border*; the others, the *core*, are
+    reordered by reverse Cuthill-McKee so that the core of ``S`` is a narrow band.
+
+    Parameters
+    ----------
+    rows, cols : array_like of int
+        The structural nonzeros of ``G``, in the order of its values.
+    shape : (int, int)
+        ``(m, n)``.
+    """
+
+    def __init__(self, rows, cols, shape: tuple[int, int]):
+        self.m, self.n = m, n = shape
+        self.rows = np.asarray(rows, dtype=np.int64)
+        self.cols = np.asarray(cols, dtype=np.int64)
+        self.nnz = len(self.rows)
+        counts = np.bincount(self.rows, minlength=m)
+        wide = counts > max(BORDER_MIN, 4 * np.median(counts))
+        self.border = np.flatnonzero(wide)
+        core = np.flatnonzero(~wide)
+        in_core = ~wide[self.rows]
+        entries = sp.csr_matrix((np.ones(in_core.sum()), (self.rows[in_core], self.cols[in_core])),
+                                shape=(m, n))[core]
+        adjacency = (entries @ entries.T).tocsr()
+        perm = np.asarray(reverse_cuthill_mckee(adjacency, symmetric_mode=True), dtype=np.int64)
+        self.core = core[perm]  # constraint index of each core position
+        self.order = np.concatenate([self.core, self.border])
+        self.inverse = np.argsort(self.order)
+        coo = adjacency.tocoo()
+        rank = perm.argsort()
+        spread = np.abs(rank[coo.row] - rank[coo.col])
+        self.bandwidth = int(max(1, spread.max(initial=0)))
+
+    @cached_property
+    def gathers(self):
+        """Index arrays that assemble the band of ``S`` and the border blocks by gathers."""
+        m, n, w = self.m, self.n, self.bandwidth
+        mc = len(self.core)
+        position = np.full(m, -1)
+        position[self.core] = np.arange(mc)
+        sentinel = self.nnz  # index of an appended zero
+        # Band slots: every pair of core entries sharing a column contributes
+        # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)).
+        order = np.argsort(self.cols, kind="stable")
+        cols_sorted = self.cols[order]
+        starts = np.searchsorted(cols_sorted, np.arange(n + 1))
+        slot, first, second, column = [], [], [], []
+        for j in range(n):
+            es = [e for e in order[starts[j]:starts[j + 1]] if position[self.rows[e]] >= 0]
+            for e1 in es:
+                for e2 in es:
+                    p1, p2 = position[self.rows[e1]], position[self.rows[e2]]
+                    if p1 >= p2:
+                        slot.append(p1 * (w + 1) + (p1 - p2))
+                        first.append(e1)
+                        second.append(e2)
+                        column.append(j)
+        slot = np.asarray(slot, dtype=np.int64)
+        per_slot = np.bincount(slot, minlength=mc * (w + 1))
+        depth = max(1, int(per_slot.max(initial=0)))
+        index = np.full((mc * (w + 1), depth, 3), [sentinel, sentinel, n], dtype=np.int64)
+        by_slot = np.argsort(slot, kind="stable")
+        rank = np.arange(len(slot)) - np.repeat(np.cumsum(per_slot) - per_slot, per_slot)
+        index[slot[by_slot], rank] = np.stack([np.asarray(first)[by_slot],
+                                               np.asarray(second)[by_slot],
+                                               np.asarray(column)[by_slot]], axis=1)
+        # Core rows of G, padded (for S_cb = G_c M^{-1} G_b^T).
+        row_counts = np.bincount(position[self.rows][position[self.rows] >= 0], minlength=mc)
+        width = max(1, int(row_counts.max(initial=0)))
+        core_entries = np.full((mc, width), sentinel, dtype=np.int64)
+        core_cols = np.zeros((mc, width), dtype=np.int64)
+        mask = position[self.rows] >= 0
+        e_core = np.flatnonzero(mask)
+        p = position[self.rows[e_core]]
+        by_row = np.argsort(p, kind="stable")
+        r_rank = np.arange(len(p)) - np.repeat(np.cumsum(row_counts) - row_counts, row_counts)
+        core_entries[p[by_row], r_rank] = e_core[by_row]
+        core_cols[p[by_row], r_rank] = self.cols[e_core[by_row]]
+        # Border rows of G, dense.
+        border_index = np.full((len(self.border), n), sentinel, dtype=np.int64)
+        where = np.full(m, -1)
+        where[self.border] = np.arange(len(self.border))
+        e_border = np.flatnonzero(where[self.rows] >= 0)
+        border_index[where[self.rows[e_border]], self.cols[e_border]] = e_border
+        return (jnp.asarray(index), jnp.asarray(core_entries), jnp.asarray(core_cols),
+                jnp.asarray(border_index))
+
+

@@ -1,0 +1,110 @@
+"""Linear algebra chosen by the structure of the constraints.
+
+Every family solves systems with the constraint Schur complement
+
+.. math::
+
+    S(q, t) = G(q, t)\\, M^{-1} G(q, t)^T \\qquad (m \\times m,\\ \\text{symmetric positive
+    definite when } G \\text{ has full rank}),
+
+in RATTLE's projections, in the eliminated stage equations of SPARK and in the index-1
+accelerations of Baumgarte's method. Dense Cholesky of ``S`` costs ``O(m^3)`` and forming
+``G`` densely ``O(m n)`` memory; the constraints of a chain, a truss or a ring of bars touch a
+handful of coordinates each, so ``G`` has ``O(m)`` entries and ``S`` is sparse. Three
+solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
+``solve(factor, r)``):
+
+``dense``
+    ``G`` by forward-mode autodiff, ``S`` formed and factorised by Cholesky: one compiled
+    kernel, the fastest path for small systems (and the only one for a configuration-
+    dependent or non-diagonal mass).
+``banded`` (:mod:`linalg.banded`)
+    ``G``'s values by compressed autodiff (a function of ``(q, t)`` the caller supplies),
+    ``S`` assembled by gathers in a bandwidth-reducing order (reverse Cuthill-McKee) and
+    factorised by a banded Cholesky written in JAX, so that it stays inside the compiled
+    loop. Rows of ``G`` with many entries (a ring's hub rows: the centre of mass involves
+    every point) would make the band full; they are kept as a dense *border* and
+    eliminated through the Schur complement of the banded core. Cost ``O(m w^2)`` for
+    bandwidth ``w``.
+``superlu`` (:mod:`linalg.sparse`)
+    The general sparse path: ``S`` assembled on the host from ``G``'s values with scipy and
+    factorised by SuperLU (fill-reducing minimum-degree ordering of ``S + S^T``, no
+    pivoting off the diagonal since ``S`` is positive definite), reached from the compiled
+    loop by a callback. The factor of the last ``S`` is kept, so the solves of one step with
+    the same ``G`` factorise once.
+
+:func:`choose` picks by structure: ``dense`` for at most :data:`DENSE_MAX` constraints or a
+mass that is not a constant diagonal; otherwise ``banded`` when the bandwidth of the core
+after reordering is at most :data:`linalg.banded.BAND_MAX`, else ``superlu``.
+
+Redundant constraints follow one policy on every path, the basic solution
+(:mod:`linalg.dense`).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import numpy as np
+
+from linalg.banded import BAND_MAX, Banded
+from linalg.dense import Schur
+from linalg.pattern import Pattern
+from linalg.sparse import SuperLU
+
+#: Largest number of constraints solved densely by default. Measured with RATTLE on the
+#: chain (``python -m benchmarks.perf.scaling``): dense is faster below about this size.
+DENSE_MAX = 8
+
+#: Names a run may ask for.
+KINDS = ("auto", "dense", "banded", "superlu")
+
+
+def choose(kind: str, shape: tuple[int, int],
+           G: Callable[[jax.Array, jax.Array], jax.Array],
+           solve_mass: Callable[[jax.Array, jax.Array], jax.Array],
+           mass_diagonal: np.ndarray | None = None,
+           sparsity: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+           G_values: Callable[[jax.Array, jax.Array], jax.Array] | None = None) -> Schur:
+    """The solver for ``S = G M^{-1} G^T``: ``kind`` or, for ``"auto"``, by structure.
+
+    Parameters
+    ----------
+    kind : {"auto", "dense", "banded", "superlu"}
+        The solver, or ``"auto"`` to choose by structure (module notes).
+    shape : (int, int)
+        ``(m, n)``: constraints and coordinates.
+    G : callable
+        ``G(q, t) -> (m, n)``, the constraint Jacobian (the dense path).
+    solve_mass : callable
+        ``solve_mass(q, b) -> M(q)^{-1} b`` (the dense path).
+    mass_diagonal : ndarray, shape (n,), optional
+        The constant diagonal of ``M`` where it is one; the structured solvers need it.
+    sparsity : callable, optional
+        ``sparsity() -> (rows, cols)``: ``G``'s structural nonzeros, called only where a
+        structured solver may be chosen (tracing the pattern costs set-up time).
+    G_values : callable, optional
+        ``G_values(q, t) -> (nnz,)``: ``G``'s entries in the order of ``sparsity``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``kind``, or a structured one on a system whose mass is not a
+        constant diagonal (the structured solvers assemble ``S`` with ``M^{-1}`` diagonal).
+    """
+    if kind not in KINDS:
+        raise ValueError(f"linear_solver = {kind!r}: expected one of {', '.join(KINDS)}")
+    diagonal = mass_diagonal is not None
+    if kind == "dense" or (kind == "auto" and (shape[0] <= DENSE_MAX or not diagonal)):
+        return Schur(G, solve_mass)
+    if not diagonal:
+        raise ValueError(f"linear_solver = {kind!r} needs a constant diagonal mass; "
+                         "this system's mass is not one (use dense)")
+    pattern = Pattern(*sparsity(), shape)
+    if kind == "banded" or (kind == "auto" and pattern.bandwidth <= BAND_MAX):
+        if pattern.bandwidth > 4 * BAND_MAX and kind == "banded":
+            raise ValueError(f"linear_solver = 'banded': the core bandwidth {pattern.bandwidth} "
+                             f"exceeds {4 * BAND_MAX} (use superlu)")
+        return Banded(pattern, G_values, mass_diagonal)
+    return SuperLU(pattern, G_values, mass_diagonal)
