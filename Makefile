@@ -20,7 +20,7 @@ run: $(STAMP)
 	$(PY) -m benchmarks.run
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
 
 clean:
 	rm -rf $(VENV) results

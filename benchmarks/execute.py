@@ -24,6 +24,7 @@ import numpy as np
 
 import integrators
 import problems
+from benchmarks import compilation
 from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
@@ -83,8 +84,9 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, repeat_budget: float = 
         grid = Grid(case.t0, case.t_end, **dict(run.grid))
         phase("set-up")
         start = time.perf_counter()
-        solve = integ.prepare(case, grid)
-        timing = Timing(setup_s=time.perf_counter() - start)
+        with compilation.Watch() as compiled:
+            solve = integ.prepare(case, grid)
+        timing = Timing(setup_s=time.perf_counter() - start, setup_cache=compiled.source)
         times: list[float] = []
         while True:
             phase(f"solve (repeat {len(times) + 1}; set-up took {timing.setup_s:.3g} s)")

@@ -49,7 +49,7 @@ COLUMNS = (
     "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
     "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
-    "energy_growth", "reference_floor", "family",
+    "energy_growth", "reference_floor", "family", "setup_cache",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -220,11 +220,14 @@ class Ending:
 
 @dataclass(frozen=True)
 class Timing:
-    """Wall times in seconds: set-up, the median of the timed solves (``wall_s``), their
-    spread and number, and the time spent in recording callbacks."""
+    """Wall times in seconds: set-up (and whether its compilations came from the persistent
+    cache), the median of the timed solves (``wall_s``), their spread and number, and the
+    time spent in recording callbacks."""
 
     wall_s: float | None = None
     setup_s: float | None = None
+    #: Where the set-up's compilations came from (:class:`benchmarks.compilation.Watch`).
+    setup_cache: str | None = None
     repeats: int | None = None
     wall_min_s: float | None = None
     wall_max_s: float | None = None

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import integrators
 import problems
-from benchmarks import suites
+from benchmarks import compilation, suites
 from benchmarks.executors import load_plugins
 from benchmarks.plan import expand
 from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
@@ -80,6 +80,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--load", action="append", default=[], metavar="PATH_OR_MODULE",
                    help="import a Python file or module that registers problems or "
                         "integrators, before anything else (repeatable; trusted code)")
+    p.add_argument("--compile-cache", metavar="DIR",
+                   help="persistent compilation cache folder, or 'off' (default: "
+                        "$DRIFTBENCH_COMPILE_CACHE, else ~/.cache/driftbench/jax)")
     p.add_argument("--list", action="store_true", help="list problems, integrators and suites")
     return p
 
@@ -195,6 +198,10 @@ def main(argv=None) -> int:
     _received.clear()
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
+        try:
+            compilation.enable(args.compile_cache)
+        except OSError as exc:
+            raise InputError(f"--compile-cache: {one_line(exc)}") from None
         load_plugins()
         runs, options, targets = plan(args)
         # The engines and the report stage are imported once the input is read: --list

@@ -417,6 +417,24 @@ def _provenance(doc: Document, runs: pd.DataFrame, current: pd.DataFrame) -> Non
                      text(s["machine"]), text(s["python"]),
                      ", ".join(f"{k} {v}" for k, v in versions.items() if v),
                      "yes" if s["session"] in shown else "superseded",
-                     text(s.get("timing_note")) or "not recorded"])
+                     text(s.get("timing_note")) or "not recorded",
+                     _setup_sources(runs[runs["session"] == s["session"]])])
     doc.add(Table(["invocation", "suite", "started", "commit", "machine", "python",
-                   "versions", "runs shown", "timing conditions"], rows))
+                   "versions", "runs shown", "timing conditions", "set-up compiled"], rows))
+    doc.add(Para("Set-up times include compilation. \"From the cache\": every executable of "
+                 "the set-up was read from the persistent compilation cache; \"compiled\": "
+                 "none was; \"in memory\": the worker had compiled it for an earlier run "
+                 "(a sweep over h or rtol). Solve times never include compilation."))
+
+
+#: How :func:`_setup_sources` words each ``setup_cache`` value.
+SETUP_SOURCES = {"cold": "compiled", "partial": "partly from the cache",
+                 "warm": "from the cache", "memory": "in memory", "off": "compiled (cache off)"}
+
+
+def _setup_sources(runs: pd.DataFrame) -> str:
+    """How many runs of an invocation compiled their set-up, read it from the cache or had
+    it in memory (``setup_cache``)."""
+    counts = runs["setup_cache"].dropna().value_counts()
+    return ", ".join(f"{counts[key]} {word}" for key, word in SETUP_SOURCES.items()
+                     if key in counts) or "not recorded"
