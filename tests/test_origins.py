@@ -110,7 +110,7 @@ def refused(tmp_path, capsys, text: str, problem: str, integrator: str) -> str:
                          ids=[c[0] for c in PROBLEMS])
 def test_an_error_in_a_user_problem_names_its_file_and_line(change, marker, words, tmp_path,
                                                             capsys, request):
-    name = f"o-{request.node.callspec.id}"
+    name = f"test-o-{request.node.callspec.id}"
     text = HEADER + PROBLEM.format(name=name, **{**GOOD, **change})
     line = refused(tmp_path, capsys, text, name, "rattle")
     assert f"{tmp_path / 'model.py'}:{line_of(text, marker)}: " in line
@@ -121,7 +121,7 @@ def test_an_error_in_a_user_problem_names_its_file_and_line(change, marker, word
 @pytest.mark.parametrize("spec, words", [c[1:] for c in METHODS], ids=[c[0] for c in METHODS])
 def test_an_error_in_a_user_method_s_options_names_its_file_and_line(spec, words, tmp_path,
                                                                      capsys, request):
-    key = f"o-{request.node.callspec.id}"
+    key = f"test-o-{request.node.callspec.id}"
     text = HEADER + METHOD.format(key=key)
     line = refused(tmp_path, capsys, text, "pendulum", spec.format(key=key))
     # A dataclass is defined where its decorator stands.
@@ -131,16 +131,17 @@ def test_an_error_in_a_user_method_s_options_names_its_file_and_line(spec, words
 
 
 def test_the_python_api_names_the_file_and_line_too(tmp_path):
-    text = (HEADER + PROBLEM.format(name="o-api", **{**GOOD, "q0": "[1.1, 0.0]"})
-            + METHOD.format(key="o-api"))
+    text = (HEADER + PROBLEM.format(name="test-o-api", **{**GOOD, "q0": "[1.1, 0.0]"})
+            + METHOD.format(key="test-o-api"))
     path = tmp_path / "api_model.py"
     path.write_text(text)
     problems.load(str(path))
     with pytest.raises(InconsistentInitialValues) as caught:
-        problems.make("o-api")
-    assert str(caught.value).startswith(f"{path}:{line_of(text, 'return make_case')}: o-api: ")
+        problems.make("test-o-api")
+    where = f"{path}:{line_of(text, 'return make_case')}"
+    assert str(caught.value).startswith(f"{where}: test-o-api: ")
     with pytest.raises(SpecError) as caught:
-        integrators.make("o-api:newton_tol=0")
+        integrators.make("test-o-api:newton_tol=0")
     # Once, in front, although the base class's check named the place before make did.
     message = str(caught.value)
     assert message.startswith(f"{path}:{line_of(text, '@dataclass')}: integrator ")
