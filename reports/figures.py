@@ -24,6 +24,10 @@ from reports.analysis import LABELS, Convergence, History, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
 LOG_FLOOR = 1e-17
+#: Largest value drawn on a log axis: a run that blew up leaves window maxima such as
+#: 2.6e285 (bricard with baumgarte-rk4 at h = 0.01), whose decade ticks pass the largest
+#: float and break the axis; its line ends at this ceiling, well above anything meaningful.
+LOG_CEILING = 1e100
 RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "none", "font.size": 8,
       "axes.grid": True, "grid.alpha": 0.3, "legend.fontsize": 7, "axes.titlesize": 9}
 MARKERS = "os^Dv<>pP*Xh"
@@ -103,8 +107,10 @@ def _arrange(fig: Figure, rows: int, cols: int, legend: tuple | None = None, nco
 
 
 def _floor(y) -> np.ndarray:
+    """``y`` for a log axis: raised to :data:`LOG_FLOOR`, cut at :data:`LOG_CEILING`,
+    non-finite values left out (NaN)."""
     y = np.asarray(y, dtype=float)
-    return np.where(np.isfinite(y), np.maximum(y, LOG_FLOOR), np.nan)
+    return np.where(np.isfinite(y), np.clip(y, LOG_FLOOR, LOG_CEILING), np.nan)
 
 
 def _empty(ax, text: str) -> None:

@@ -292,3 +292,17 @@ def test_figure_colours_follow_the_integrators_families():
     assert abs(hue["rattle"] - hue["lobatto3ab2"]) > 0.05
     assert colors["lobatto3ab2"][0] != colors["lobatto3ab3"][0]
     assert colors["lobatto3ab2"][1] != colors["lobatto3ab3"][1]
+
+
+def test_a_drift_figure_draws_a_run_that_blew_up():
+    # bricard with baumgarte-rk4 at h = 0.01 leaves window maxima of 2.6e285 before its state
+    # turns non-finite; log-axis ticks at such values pass the largest float, and the
+    # report must still be built.
+    from reports import figures
+
+    windows = {"t": np.array([0.25, 0.5, 0.75]), "pos": np.array([1e-9, 1e40, 2.6e285]),
+               "energy": np.array([1e-6, 1e200, np.inf])}
+    entry = {"label": "baumgarte-rk4", "integrator": "baumgarte-rk4", "windows": windows,
+             "failed": True, "fail_time": 0.77}
+    svg = figures.drift([entry], {"baumgarte-rk4": ("#1f77b4", "o")}, "bricard")
+    assert svg.lstrip().startswith("<") and "</svg>" in svg
