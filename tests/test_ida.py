@@ -48,6 +48,7 @@ def test_ggl_error_falls_with_tolerance():
     assert errors[-1] <= errors[0] * 1e-4, errors
 
 
+@pytest.mark.slow
 def test_ggl_holds_the_constraint_over_1000_s():
     rtol = 1e-5
     traj, m = run(f"ida-ggl:rtol={rtol}", PENDULUM, 1000.0)

@@ -2,6 +2,7 @@
 reproduced, constraints held, declared invariants kept."""
 
 import numpy as np
+import pytest
 
 from helpers import solve, state_error
 
@@ -29,6 +30,7 @@ def test_bricard_redundant_constraints_rattle_holds_g():
     assert state_error(case, traj) <= 2e-3
 
 
+@pytest.mark.slow
 def test_bricard_lobatto_matches_the_stored_reference():
     case, traj = solve("bricard", "lobatto3ab4", t_end=1.0, h=0.01)
     # The stored state at t = 1 is good to about 3e-12; sixth order at h = 0.01 gives

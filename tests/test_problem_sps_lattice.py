@@ -167,6 +167,7 @@ def small_perturbed_run(coriolis):
                  "rattle", t_end=10.0, h=0.01)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("coriolis", [False, True])
 def test_lattice_keeps_its_invariants_with_and_without_coriolis(coriolis):
     case, traj = small_perturbed_run(coriolis)
