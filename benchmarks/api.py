@@ -16,7 +16,6 @@ for the same runs, bit for bit.
 
 from __future__ import annotations
 
-import sys
 import tempfile
 from pathlib import Path
 from typing import Iterable, TextIO
@@ -35,7 +34,7 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
           t_end: float | None = None, load: Iterable[str] = (), out: str | Path | None = None,
           report: bool = False, jobs: int | None = None, cluster: str | None = None,
           timeout: float | None = None, repeats: int = 3,
-          log: TextIO | None = sys.stderr) -> pd.DataFrame:
+          log: TextIO | None | str = "stderr") -> pd.DataFrame:
     """Run every combination of problems, integrators and settings; return the runs.
 
     Parameters
@@ -66,7 +65,7 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
     repeats : int
         Timed solves of each run (``wall_s`` is their median).
     log : text stream, optional
-        Where one line per finished run goes (None: nowhere).
+        Where one line per finished run goes (None: nowhere; default: standard error).
 
     Returns
     -------

@@ -215,7 +215,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
               cluster: str | None = None, suite: str = "ad-hoc", repeats: int = 3,
               timeout: float | None = None, resume: bool = False,
               studies: Iterable[str] = (), grid_options: dict | None = None,
-              load: Iterable[str] = (), cases=(), log: TextIO | None = sys.stderr,
+              load: Iterable[str] = (), cases=(), log: TextIO | None | str = "stderr",
               progress: bool | None = None, allow_large: bool = False) -> list[Record]:
     """Run ``specs`` on an engine, store every run and write ``out/runs.csv``.
 
@@ -255,7 +255,9 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         the workers pickled by value.
     log : text stream, optional
         Where the progress bar (on a terminal), one line per run and the engine's notes
-        (the Dask dashboard's address) go.
+        (the Dask dashboard's address) go: ``None`` for nowhere; by default the standard
+        error stream of the moment of the call (not of the import: a stream that was
+        replaced since may be closed).
     progress : bool, optional
         Force the progress bar on or off (default: on when ``log`` is a terminal).
     allow_large : bool
@@ -276,6 +278,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         A store or ``runs.csv`` that failed while the batch ran, raised once every run has
         ended (its ``records`` are what this function returns otherwise).
     """
+    log = sys.stderr if log == "stderr" else log
     load_plugins()
     loaded, blobs = user_code(load, cases)
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:

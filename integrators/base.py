@@ -37,9 +37,6 @@ class Status(enum.StrEnum):
     SKIPPED = "skipped"
 
 
-OK, FAILED, TIMEOUT, ERROR, SKIPPED = Status
-
-
 class Failure(enum.IntEnum):
     """Why a step of our compiled loops failed: the integer code a step returns, with its
     message (:attr:`message`). ``NONE`` (0) is a step that did not fail.

@@ -15,7 +15,7 @@ import integrators
 import problems
 from benchmarks.metrics import summarize
 from integrators import baumgarte
-from integrators.base import FAILED, OK, Grid
+from integrators.base import Grid, Status
 from rheonomic import spinning_rod
 
 PENDULUM = problems.make("pendulum")
@@ -32,7 +32,7 @@ def test_error_falls_with_tolerance(solver):
     errors = []
     for rtol in [1e-4, 1e-6, 1e-8, 1e-10]:
         traj, m = run(f"baumgarte-{solver}:rtol={rtol}", PENDULUM, 10.0)
-        assert traj.status == OK, traj.message
+        assert traj.status == Status.OK, traj.message
         assert traj.sampling.startswith("every internal step")
         errors.append(m["final_state_error"])
     # Tolerance proportionality of these pairs is good (measured 52- to 490-fold per
@@ -54,7 +54,7 @@ def test_rk4_converges_at_order_four():
 def test_unstabilised_drift_grows_and_the_default_damps_it(spec):
     free, m_free = run(f"{spec},alpha=0,beta=0", PENDULUM, 100.0)
     damped, m_damped = run(spec, PENDULUM, 100.0)
-    assert free.status == OK and damped.status == OK
+    assert free.status == Status.OK and damped.status == Status.OK
     pos = free.windows["pos"]
     tenth = len(pos) // 10
     # Without stabilisation g'' = 0 holds only to the local error, so |g| grows (measured
@@ -67,7 +67,7 @@ def test_unstabilised_drift_grows_and_the_default_damps_it(spec):
 def test_dopri8_accuracy_and_damping_over_100_s():
     damped, m_damped = run("baumgarte-dopri8:rtol=1e-10", PENDULUM, 100.0)
     free, m_free = run("baumgarte-dopri8:rtol=1e-10,alpha=0,beta=0", PENDULUM, 100.0)
-    assert damped.status == OK and free.status == OK
+    assert damped.status == Status.OK and free.status == Status.OK
     # The bar: final position error <= 1e-7 (measured 2.4e-8), and at least 10x
     # larger |g| without stabilisation (measured 1.4e4 x).
     assert m_damped["final_state_error"] <= 1e-7
@@ -78,7 +78,7 @@ def test_dopri8_accuracy_and_damping_over_100_s():
                                                ("baumgarte-rk4:h=0.005", 1e-7)])
 def test_rheonomic_constraint_against_exact_solution(spec, error_bound):
     traj, m = run(spec, spinning_rod(), 3.0)
-    assert traj.status == OK, traj.message
+    assert traj.status == Status.OK, traj.message
     # Measured 4e-11 and 7e-9: the bounds leave a factor of about 15 to 25.
     assert m["final_state_error"] <= error_bound
     assert m["max_pos_residual"] <= 1e-7
@@ -103,16 +103,16 @@ def test_vector_field_evaluations_are_counted_exactly(monkeypatch):
     for spec in ("baumgarte-dopri5:rtol=1e-7", "baumgarte-rk4:h=0.05"):
         calls.clear()
         traj = integrators.make(spec).prepare(case, Grid(case.t0, case.t_end))()
-        assert traj.status == OK
+        assert traj.status == Status.OK
         assert traj.counts["n_f_evals"] == len(calls) == traj.counts["n_lin_solves"]
     assert traj.counts["n_f_evals"] == 4 * traj.counts["n_steps"] == 400
 
 
 def test_failures_are_data():
     blown, _ = run("baumgarte-rk4:h=0.05,alpha=0,beta=0", PENDULUM, 100.0)
-    assert blown.status == FAILED and "non-finite" in blown.message
+    assert blown.status == Status.FAILED and "non-finite" in blown.message
     assert 0 < blown.t_final < 100.0 and blown.fail_time == blown.t_final
     assert np.all(np.isfinite(blown.q_final))
     capped, _ = run("baumgarte-dopri5:rtol=1e-6,max_steps=10", PENDULUM, 10.0)
-    assert capped.status == FAILED and "max_steps = 10" in capped.message
+    assert capped.status == Status.FAILED and "max_steps = 10" in capped.message
     assert capped.counts["n_steps"] == 10 and capped.t_final < 10.0

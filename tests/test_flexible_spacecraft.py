@@ -10,7 +10,7 @@ import scipy.linalg as sla
 
 import problems
 from integrators import make as make_integrator
-from integrators.base import OK, Grid
+from integrators.base import Grid, Status
 from problems import flexible_spacecraft as fs
 from studies.flexible.selection import free_free_frequencies_hz
 
@@ -118,7 +118,7 @@ def test_bad_parameters_are_refused():
 def run(case, key, h):
     grid = Grid(case.t0, case.t_end, n_windows=10, n_samples=10)
     traj = make_integrator(key, h=h).prepare(case, grid)()
-    assert traj.status == OK, traj.message
+    assert traj.status == Status.OK, traj.message
     return traj
 
 

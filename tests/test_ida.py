@@ -16,7 +16,7 @@ import problems
 from benchmarks.metrics import summarize
 from benchmarks.execute import execute
 from benchmarks.records import RunSpec
-from integrators.base import FAILED, OK, Grid
+from integrators.base import Grid, Status
 from integrators.ida import (EXCLUDED, FORMULATIONS, consistent_values, dae_residual,
                              iteration_matrix)
 from rheonomic import spinning_rod
@@ -35,7 +35,7 @@ def test_ggl_error_falls_with_tolerance():
     errors = []
     for rtol in rtols:
         traj, m = run(f"ida-ggl:rtol={rtol}", PENDULUM, 10.0)
-        assert traj.status == OK, traj.message
+        assert traj.status == Status.OK, traj.message
         assert traj.counts["n_newton"] == traj.counts["n_f_evals"] >= traj.counts["n_steps"] > 0
         assert traj.counts["n_jac_evals"] > 0 and traj.counts["n_rejected"] >= 0
         assert 0 < traj.extra["callback_s"]
@@ -52,7 +52,7 @@ def test_ggl_error_falls_with_tolerance():
 def test_ggl_holds_the_constraint_over_1000_s():
     rtol = 1e-5
     traj, m = run(f"ida-ggl:rtol={rtol}", PENDULUM, 1000.0)
-    assert traj.status == OK, traj.message
+    assert traj.status == Status.OK, traj.message
     assert traj.sampling.startswith("every internal step")
     # g = 0 is one of the equations IDA's Newton solves: it holds to the Newton tolerance,
     # a fraction of the weighted error tolerance per component, not to round-off (measured
@@ -67,7 +67,7 @@ def test_ggl_holds_the_constraint_over_1000_s():
 def test_index1_drifts_and_ggl_does_not():
     index1, m1 = run("ida-index1:rtol=1e-8", PENDULUM, 50.0)
     ggl, m2 = run("ida-ggl:rtol=1e-8", PENDULUM, 50.0)
-    assert index1.status == OK and ggl.status == OK
+    assert index1.status == Status.OK and ggl.status == Status.OK
     # The index-1 form only keeps d^2 g/dt^2 = 0: errors in g and G v integrate up, so
     # |g| grows with t (measured per tenth of the horizon: 4e-6, 2e-5, ... 4e-4, steadily).
     # A 10 % dip between tenths and a 20x rise overall (measured 99x) leave room for noise.
@@ -81,7 +81,7 @@ def test_index1_drifts_and_ggl_does_not():
 def test_multipliers_never_limit_the_step():
     default, _ = run("ida-ggl:rtol=1e-6", PENDULUM, 2.0)
     smaller, _ = run("ida-ggl:rtol=1e-6,multiplier_atol=1e20", PENDULUM, 2.0)
-    assert default.status == smaller.status == OK
+    assert default.status == smaller.status == Status.OK
     assert integrators.make("ida-ggl").multiplier_atol == EXCLUDED
     # Weights of 1e-20 and 1e-30 are both nil next to those of q and v: IDA must take
     # exactly the same steps and produce the same state, bit for bit.
@@ -92,20 +92,20 @@ def test_multipliers_never_limit_the_step():
     limit = 4 * default.counts["n_steps"]
     included, _ = run(f"ida-ggl:rtol=1e-6,multiplier_atol=1e-6,max_steps={limit}",
                       PENDULUM, 2.0)
-    assert included.status == FAILED and included.t_final < 2.0
+    assert included.status == Status.FAILED and included.t_final < 2.0
     assert f"max_steps = {limit}" in included.message
 
 
 def test_index1_multiplier_in_the_error_test_hits_round_off():
     default, m = run("ida-index1:rtol=1e-9", PENDULUM, 2.0)
-    assert default.status == OK and integrators.make("ida-index1").multiplier_atol == EXCLUDED
+    assert default.status == Status.OK and integrators.make("ida-index1").multiplier_atol == EXCLUDED
     # lam comes from v', whose round-off grows like eps / h: in the error test at this
     # tolerance it drives the step down (measured 24589 steps against 708), so 10x the
     # default's steps do not cover the horizon.
     limit = 10 * default.counts["n_steps"]
     included, _ = run(f"ida-index1:rtol=1e-9,multiplier_atol=1e-9,max_steps={limit}",
                       PENDULUM, 2.0)
-    assert included.status == FAILED and included.t_final < 2.0
+    assert included.status == Status.FAILED and included.t_final < 2.0
 
 
 @pytest.mark.parametrize("formulation", sorted(FORMULATIONS))
@@ -139,7 +139,7 @@ def test_iteration_matrix_matches_finite_differences(formulation, case):
 def test_difference_quotient_jacobian_is_an_option_and_its_calls_are_counted(formulation):
     ours, m_ours = run(f"ida-{formulation}:rtol=1e-8", PENDULUM, 5.0)
     dq, m_dq = run(f"ida-{formulation}:rtol=1e-8,jacobian=difference-quotient", PENDULUM, 5.0)
-    assert ours.status == dq.status == OK
+    assert ours.status == dq.status == Status.OK
     size = 2 * PENDULUM.mech.n + FORMULATIONS[formulation].multiplier_blocks * PENDULUM.mech.m
     # IDA's Newton evaluates the residual once per iteration; its difference quotients add
     # one call per component of y per Jacobian. Our counts must add up to exactly that.
@@ -153,7 +153,7 @@ def test_difference_quotient_jacobian_is_an_option_and_its_calls_are_counted(for
                                                ("ida-index1:rtol=1e-8", 4e-5)])
 def test_rheonomic_constraint_against_exact_solution(spec, error_bound):
     traj, m = run(spec, spinning_rod(), 3.0)
-    assert traj.status == OK, traj.message
+    assert traj.status == Status.OK, traj.message
     # |y| grows to cosh(3) = 10 and the tolerance is relative: a global error of a few
     # hundred rtol |y| is BDF's usual (measured 3.9e-6 and 1.9e-6).
     assert m["final_state_error"] <= error_bound
@@ -167,13 +167,13 @@ def test_failures_are_failed_rows_and_the_suite_goes_on():
         RunSpec("pendulum", "ida-ggl", rtol=1e-6, t_end=1.0),
     )]
     unattainable, too_many, healthy = (r.row for r in records)
-    assert unattainable["status"] == FAILED
+    assert unattainable["status"] == Status.FAILED
     assert "Could not satisfy demanded accuracy" in unattainable["message"]
     assert "too much accuracy requested" in unattainable["message"]
-    assert too_many["status"] == FAILED and "max_steps = 50" in too_many["message"]
+    assert too_many["status"] == Status.FAILED and "max_steps = 50" in too_many["message"]
     assert too_many["n_steps"] == 50 and too_many["t_final"] < 1.0
     assert too_many["fail_time"] == too_many["t_final"] and too_many["fail_step"] == 51
-    assert healthy["status"] == OK and healthy["t_final"] == 1.0
+    assert healthy["status"] == Status.OK and healthy["t_final"] == 1.0
 
 
 @pytest.mark.parametrize("linsolver", ["dense", "sparse"])

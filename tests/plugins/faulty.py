@@ -30,7 +30,7 @@ import pandas as pd
 import integrators
 import problems
 from benchmarks import batch
-from integrators.base import OK, Integrator, Trajectory
+from integrators.base import Integrator, Status, Trajectory
 from problems.case import make_case
 from problems.mechanics import System
 
@@ -84,7 +84,7 @@ class ReturnNaN(Integrator):
         def solve():
             t = np.array([case.t0, case.t_end])
             nan = np.array([0.0, np.nan])
-            return Trajectory(OK, "", case.t_end, np.full(n, np.nan), np.full(n, np.nan),
+            return Trajectory(Status.OK, "", case.t_end, np.full(n, np.nan), np.full(n, np.nan),
                               {"t": t, "pos": nan, "vel": nan, "energy": nan},
                               {"t": t, "q": np.full((2, n), np.nan), "v": np.full((2, n), np.nan)},
                               {"n_steps": 1})
