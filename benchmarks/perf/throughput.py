@@ -65,7 +65,7 @@ from integrators.base import Grid
 from integrators.loop import kernel_environment
 
 #: The throughput bar: rattle's steps per second over the C loop's.
-RATIO_BAR = 0.5
+RATIO_BAR = 0.8
 #: The memory bar: peak resident set of a whole run's process (bytes).
 MEMORY_BAR = 1 << 30
 #: Largest rise of the peak from 1e6 to 1e7 steps that still counts as no growth (bytes):
