@@ -423,8 +423,9 @@ def _provenance(doc: Document, runs: pd.DataFrame, current: pd.DataFrame) -> Non
                    "versions", "runs shown", "timing conditions", "set-up compiled"], rows))
     doc.add(Para("Set-up times include compilation. \"From the cache\": every executable of "
                  "the set-up was read from the persistent compilation cache; \"compiled\": "
-                 "none was; \"in memory\": the worker had compiled it for an earlier run "
-                 "(a sweep over h or rtol). Solve times never include compilation."))
+                 "none was; \"partly\": some were; \"in memory\": the worker had compiled it "
+                 "for an earlier run (a sweep over h or rtol). Solve times never include "
+                 "compilation."))
 
 
 #: How :func:`_setup_sources` words each ``setup_cache`` value.
