@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from integrators.base import COUNTERS, Failure, Grid, Integrator
-from integrators.loop import WORK, march
+from integrators.loop import WORK, attempt, march
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -156,20 +156,12 @@ class Stepper:
         return self._step(state, jnp.asarray(self.method.h if h is None else h, jnp.float64))
 
     def _advance(self, state: State, h: jax.Array) -> tuple[State, jax.Array]:
-        mech, schur = self.case.mech, self.schur
-        carry, code, _, inc = self.method.step(mech, schur, state.carry, state.t, h)
-        q, v = self._observe(carry)
-        finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
-        code = jnp.where(code != 0, code,
-                         jnp.where(finite, 0, Failure.NON_FINITE)).astype(jnp.int32)
+        step = partial(self.method.step, self.case.mech, self.schur)
+        carry, code, _, work, _ = attempt(step, self._observe, state.carry, state.t, h)
         good = code == 0
-        counts = dict(state.counts)
-        counts["n_steps"] = counts["n_steps"] + good
-        for key in WORK:
-            counts[key] = counts[key] + jnp.asarray(inc.get(key, 0), jnp.int64)
-        new = State(state.t + h, carry, counts)
-        kept = State(state.t, state.carry, counts)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, kept), code
+        counts = {"n_steps": state.counts["n_steps"] + good,
+                  **{key: state.counts[key] + inc for key, inc in zip(WORK, work)}}
+        return State(jnp.where(good, state.t + h, state.t), carry, counts), code
 
     def observe(self, state: State) -> tuple[jax.Array, jax.Array]:
         """Positions and velocities of ``state``."""

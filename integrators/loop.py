@@ -116,6 +116,25 @@ def put(rows: jax.Array, i: jax.Array, row: jax.Array) -> jax.Array:
     return jax.lax.dynamic_update_index_in_dim(rows, row, i, 0)
 
 
+def attempt(step: Step, observe: Callable[[Any], tuple[jax.Array, jax.Array]], carry: Any,
+            t: jax.Array, h: jax.Array):
+    """One step from ``carry`` at ``t`` under the loop's rule for failures.
+
+    Returns ``(carry1, code, residual, work, (q, v))``: a step that fails (its own code, or
+    a non-finite ``(q, v)``: :attr:`Failure.NON_FINITE`) leaves ``carry1 = carry``;
+    ``work`` holds the increments of :data:`WORK` in that order, and ``(q, v)`` is the new
+    state observed (meaningful where ``code`` is 0).
+    """
+    new, code, resid, inc = step(carry, t, h)
+    q, v = observe(new)
+    finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
+    code = jnp.where(code != 0, code, jnp.where(finite, 0, Failure.NON_FINITE)).astype(jnp.int32)
+    good = code == 0
+    carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
+    work = jnp.stack([jnp.asarray(inc.get(key, 0), jnp.int64) for key in WORK])
+    return carry, code, resid, work, (q, v)
+
+
 def _loop(mech: Mechanics, grid: Grid, step: Step,
           observe: Callable[[Any], tuple[jax.Array, jax.Array]]) -> Callable:
     """The loop as a function of ``(carry0, h, N, W, stride)``: ``N`` steps of size ``h``
@@ -137,19 +156,12 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
 
         def body(state):
             k, carry, _, _, peak, counts = state
-            new, code, resid, inc = step(carry, t0 + k * h, h)
-            q, v = observe(new)
-            finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(v))
-            code = jnp.where(code != 0, code,
-                             jnp.where(finite, 0, Failure.NON_FINITE)).astype(jnp.int32)
+            carry, code, resid, inc, (q, v) = attempt(step, observe, carry, t0 + k * h, h)
             good = code == 0
-            carry = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), new, carry)
             k1 = k + good.astype(k.dtype)
             m = measure(t0 + k1 * h, q, v, E0, I0)
             peak = jnp.maximum(peak, jnp.where(good, m, 0.0))
-            counts = counts + jnp.stack([jnp.asarray(inc.get(key, 0), jnp.int64)
-                                         for key in WORK])
-            return k1, carry, code, resid, peak, counts
+            return k1, carry, code, resid, peak, counts + inc
 
         state = (k, carry, jnp.asarray(0, jnp.int32), jnp.asarray(0.0),
                  jnp.zeros(3 + n_inv), counts)

@@ -49,7 +49,10 @@ def children() -> set[int]:
     """The live child processes of this process (from /proc)."""
     pids = set()
     for task in Path("/proc/self/task").iterdir():
-        pids |= {int(p) for p in (task / "children").read_text().split()}
+        try:
+            pids |= {int(p) for p in (task / "children").read_text().split()}
+        except FileNotFoundError:  # a thread that ended since the listing: no children
+            continue
     return pids
 
 
