@@ -41,7 +41,8 @@ class Rattle(FixedStep):
     Newton instead: the Jacobian is replaced by ``-h^2/2 S_0`` with the Schur complement
     ``S_0 = G(q_0) M^{-1} G(q_0)^T``, whose factor is the previous step's velocity
     projection matrix, so each step factorises ``S`` once (at ``q_1``, for the velocity
-    projection) and ``G`` is never formed. With forces the unknown is again
+    projection) and ``G`` is never formed. Where the frozen Jacobian does not converge, Newton with the
+    exact Jacobian (matrix-free, preconditioned by ``S_0``) takes over. With forces the unknown is again
     ``(p_{1/2}, q_1, lambda)``, and the same elimination reduces its correction to one solve
     with ``S_0``.
 
@@ -53,9 +54,11 @@ class Rattle(FixedStep):
         Max-norm residual tolerance of the position projection; the default 1e-16 iterates to
         round-off (see :func:`integrators.newton.newton`).
     newton_max_iter : int
-        Newton iteration limit per step; exceeding it fails the run. The structured path's
-        simplified Newton converges linearly, slowly where the constraint forces are large
-        (on sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
+        Newton iteration limit per step. On the structured path simplified Newton gets this
+        many, then Newton with the exact Jacobian as many more
+        (:func:`integrators.newton.newton`); exceeding both fails the run. Simplified Newton
+        converges linearly, slowly where the constraint forces are large (on
+        sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
         forces peak, it needed more than 20 iterations), hence the margin.
     linear_solver : {"auto", "dense", "banded", "superlu"}
         How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).

@@ -132,18 +132,12 @@ def test_perturbed_lattice_keeps_constraints_energy_and_angular_momentum():
     # times their initial value for about 0.1 s, and by t = 11 the perturbation has grown
     # into a crumpled lattice. At h = 0.01 RATTLE's position step from t = 11.22 has no
     # solution (the least-squares minimum of |g| over lambda is 5.6e-5; see the module
-    # docstring). The horizon stops at t = 12: at t = 12.18 the rings pass a configuration
-    # where G M^-1 G^T is numerically singular, and RATTLE's simplified Newton on the
-    # structured path (SuperLU, a least-squares solve for the singular S) diverges there:
-    # failed at step 2436, t = 12.175 -> 12.18 (measured); the dense path's full Newton
-    # passes it and runs to t = 20 in 274 s (measured), too long for this suite.
-    # The iteration limit is raised from 50 to 200: the simplified Newton's linear
-    # contraction depends on the last bits of the iterates, and on an AVX-512 processor
-    # the step from t = 7.995 stopped at the default limit with |g| = 4e-11 (and at
-    # 4e-12 with S refactorised at the iterate after 50 more); with 200 it runs through
-    # (10 iterations a step on average, measured).
-    case, traj = solve("sps-lattice:N=16,K=8,perturb=0.01", "rattle", t_end=12.0, h=0.005,
-                       newton_max_iter=200)
+    # docstring). At t = 12.18 the rings pass a configuration where G M^-1 G^T is
+    # numerically singular: the structured path's simplified Newton (SuperLU here)
+    # diverges there, and Newton with the exact Jacobian takes over; the run goes on to
+    # t = 20 on the structured path with the default iteration limit, as the dense path's
+    # full Newton does (benchmarks/perf/robustness.py runs both side by side).
+    case, traj = solve("sps-lattice:N=16,K=8,perturb=0.01", "rattle", t_end=20.0, h=0.005)
     assert case.mech.n == 768 and case.mech.m == 597
     w = traj.windows
     # g = 0 and G v = 0 are solved to round-off at every step (newton_tol 1e-16; O(1)
