@@ -78,6 +78,13 @@ def rotation(q):
     ])
 
 
+def quaternion_mass(e, J, j0):
+    """The 4 x 4 mass ``4 E(e)^T diag(J) E(e) + 4 j0 e e^T`` of a body in Euler parameters
+    (module notes; ``J`` the principal inertia, ``j0`` their mean)."""
+    Ee = E_matrix(e)
+    return 4.0 * Ee.T @ (J[:, None] * Ee) + 4.0 * j0 * jnp.outer(e, e)
+
+
 def quat_mul(a, b):
     """Quaternion product ``a b`` (scalar first), numpy."""
     a0, av, b0, bv = a[0], np.asarray(a[1:]), b[0], np.asarray(b[1:])
@@ -157,8 +164,7 @@ def rigid_body(J1: float = 1.0, J2: float = 2.0, J3: float = 3.0, w1: float = 1.
     j0 = float(np.mean(J))
 
     def mass(q):
-        Eq = E_matrix(q)
-        return 4.0 * Eq.T @ (Jd[:, None] * Eq) + 4.0 * j0 * jnp.outer(q, q)
+        return quaternion_mass(q, Jd, j0)
 
     def momentum_component(i):
         return lambda q, v: (rotation(q) @ (Jd * (2.0 * E_matrix(q) @ v)))[i]
