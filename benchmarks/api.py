@@ -63,7 +63,8 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
     timeout : float, optional
         Time limit of each run in seconds (default: one hour).
     repeats : int
-        Timed solves of each run (``wall_s`` is their median).
+        Timed solves of each run at least, within autorange's cap
+        (:func:`benchmarks.execute.more`; ``wall_s`` is their median).
     log : text stream, optional
         Where one line per finished run goes (None: nowhere; default: standard error).
 

@@ -233,7 +233,8 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     suite : str
         Name recorded with the session.
     repeats : int
-        Timed repeats of each solve (the median is reported).
+        Timed solves of each run at least, within autorange's cap
+        (:func:`benchmarks.execute.more`; the median is reported).
     timeout : float, optional
         Time limit of a run that sets none itself (default :data:`DEFAULT_TIMEOUT`);
         also the time limit of each study.

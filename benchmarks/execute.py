@@ -47,10 +47,30 @@ def forget_cases() -> None:
     _case.cache_clear()
 
 
-def execute(run: PlannedRun | RunSpec, repeats: int = 3, repeat_budget: float = 10.0,
-            deadline: float | None = None,
+#: Autorange timing (in the manner of :func:`timeit.Timer.autorange`): a run's solve is
+#: repeated until it has been timed at least ``repeats`` times and for at least
+#: :data:`MIN_TOTAL_S` in all, within a cap of :data:`MAX_SOLVES` solves and
+#: :data:`MAX_EXTRA_S` seconds of solving after the first. Most solves take milliseconds,
+#: so they get a measured spread at little cost; a long solve is not repeated beyond the cap.
+MIN_TOTAL_S = 0.2
+MAX_SOLVES = 10
+MAX_EXTRA_S = 2.0
+
+
+def more(times: list[float], repeats: int) -> bool:
+    """Whether autorange timing solves once more after the solves timed so far (``times``):
+    the minimum (``repeats`` solves, :data:`MIN_TOTAL_S` in all) is not reached, the cap is
+    not, and the next solve (expected to last as long as the slowest so far) fits within
+    :data:`MAX_EXTRA_S`."""
+    extra = sum(times) - times[0]
+    return ((len(times) < repeats or sum(times) < MIN_TOTAL_S)
+            and len(times) < max(MAX_SOLVES, repeats)
+            and extra + max(times) <= MAX_EXTRA_S)
+
+
+def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None = None,
             on_phase: Callable[[str], None] | None = None) -> Record:
-    """Run ``run``: set-up once, solve up to ``repeats`` times, measure the last solve.
+    """Run ``run``: set-up once, solve and time by autorange, measure the last solve.
 
     Parameters
     ----------
@@ -59,11 +79,8 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, repeat_budget: float = 
         planned here first (:func:`benchmarks.plan.plan`, with this code's version), for
         a single run from a test or a notebook.
     repeats : int
-        Timed solves at most; ``wall_s`` is their median, ``wall_min_s`` and ``wall_max_s``
-        their spread.
-    repeat_budget : float
-        Repeats stop once their total passes this many seconds, so long runs are solved
-        once or twice.
+        Timed solves at least, within autorange's cap (:func:`more`): ``wall_s`` is their
+        median, ``wall_min_s`` and ``wall_max_s`` their spread, ``repeats`` their count.
     deadline : float, optional
         A ``time.monotonic`` time (the run's time limit): a repeat is not started when it
         would likely end after it. Every repeat of a deterministic method gives the same
@@ -93,7 +110,7 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, repeat_budget: float = 
             start = time.perf_counter()
             traj = solve()
             times.append(time.perf_counter() - start)
-            if len(times) >= repeats or sum(times) >= repeat_budget:
+            if not more(times, repeats):
                 break
             # A margin of twice the last solve: repeats vary, and a timing repeat must not
             # turn a finished run into a timeout.

@@ -64,6 +64,7 @@ import jax.numpy as jnp
 
 import problems
 from benchmarks import compilation
+from benchmarks.execute import MAX_EXTRA_S, MAX_SOLVES, MIN_TOTAL_S
 from benchmarks.executors import Outcome, Task, load_plugins, perform, pick
 from integrators.loop import kernel_environment
 
@@ -97,8 +98,9 @@ def timing_note(placement: str, repeats: int) -> str:
     """The report's sentences on timing, given where the workers ran (``placement``)."""
     load = f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "unknown"
     return (f"Each run executes in a worker process with one intra-op thread (XLA, BLAS); "
-            f"{placement}. wall_s is the median of up to {repeats} timed repeats of the "
-            f"solve after set-up (wall_min_s and wall_max_s their spread; setup_s, timed "
+            f"{placement}. wall_s is the median of the timed solves after set-up: at least "
+            f"{repeats} and {MIN_TOTAL_S:g} s of solving, up to {MAX_SOLVES} solves or "
+            f"{MAX_EXTRA_S:g} s of solving after the first (autorange; wall_min_s and wall_max_s their spread; setup_s, timed "
             f"once, includes compilation; near zero for a run that reused what an earlier "
             f"run of the same problem and method compiled in its worker). Not controlled: "
             f"other processes on the machine and shared caches and memory bandwidth; "

@@ -64,7 +64,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--atol", nargs="+", type=float, default=[], help="absolute tolerances (adaptive methods)")
     p.add_argument("--t-end", type=float, help="end time (default: each problem's own)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
-    p.add_argument("--repeats", type=int, help="timed repeats of each solve (median is reported)")
+    p.add_argument("--repeats", type=int, help="timed solves of each run at least (autorange; the median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="run on Dask: local:N (N workers here) or tcp://HOST:PORT (a running "

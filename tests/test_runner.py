@@ -178,7 +178,7 @@ def test_the_linear_solver_and_pattern_size_are_recorded(tmp_path):
 def test_a_run_returns_a_complete_record():
     """What the store and the report need is known where the run happens."""
     from benchmarks.drift import SEVERITY, kind_of
-    from benchmarks.execute import execute
+    from benchmarks.execute import MAX_SOLVES, MIN_TOTAL_S, execute
 
     row = execute(RunSpec("pendulum", "rattle", 0.05, t_end=10.0), repeats=2).row
     assert row["status"] == "ok"
@@ -187,6 +187,28 @@ def test_a_run_returns_a_complete_record():
     # RATTLE keeps |g| at round-off and the pendulum's energy error bounded.
     assert kind_of(row["pos_growth"]) == "bounded"
     assert kind_of(row["energy_growth"]) in SEVERITY
-    assert row["repeats"] == 2 and row["wall_min_s"] <= row["wall_s"] <= row["wall_max_s"]
+    # Autorange: 200 steps take about a millisecond, so the solve is repeated past the
+    # two asked for until 0.2 s of solving or ten solves.
+    assert 2 <= row["repeats"] <= MAX_SOLVES
+    assert row["wall_min_s"] <= row["wall_s"] <= row["wall_max_s"]
+    assert row["repeats"] == MAX_SOLVES or row["repeats"] * row["wall_max_s"] >= MIN_TOTAL_S
     chaotic = RunSpec("double-pendulum:energy=high", "rattle", 0.01)
     assert plan([chaotic], "v")[0].run.sensitive == 1
+
+
+@pytest.mark.parametrize("times, repeats, again", [
+    ([0.001], 3, True),                 # fewer than the minimum count
+    ([0.001] * 3, 3, True),             # the count is reached, 0.2 s of solving is not
+    ([0.001] * 10, 3, False),           # the cap of ten solves
+    ([0.1, 0.1, 0.1], 3, False),        # three solves and 0.3 s: enough
+    ([0.12, 0.05], 1, True),            # one asked for, 0.2 s not yet reached
+    ([2.5], 3, False),                  # a second solve would pass 2 s of extra solving
+    ([1.5], 3, True),                   # a second fits,
+    ([1.5, 1.5], 3, False),             # a third would not
+    ([0.9, 0.9], 3, True),              # a third fits (1.8 s of extra solving)
+    ([0.001] * 12, 20, True),           # a count asked for above the cap is honoured
+])
+def test_autorange_repeats_short_solves_within_its_cap(times, repeats, again):
+    from benchmarks.execute import more
+
+    assert more(times, repeats) is again
