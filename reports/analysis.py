@@ -14,7 +14,8 @@ Two rules run through every verdict here:
   plateau (:data:`ORDER_FLOOR`) are masked the same way in verdicts and fits.
 - **Timing spread.** Wall times are medians of repeated solves with their minimum and
   maximum; one run is named faster than another only when its slowest repeat beat the
-  other's fastest (:func:`cheapest`). Evaluation counts are exact and need no such rule.
+  other's fastest (:func:`cheapest`; a run solved once is given the widest relative spread
+  measured among the problem's finished runs at that horizon). Evaluation counts are exact and need no such rule.
 """
 
 from __future__ import annotations
@@ -287,14 +288,24 @@ class Pick:
     text: str = "none"
 
 
-def cheapest(candidates: pd.DataFrame, cost: str) -> Pick:
+def widest_spread(runs: pd.DataFrame) -> float:
+    """The largest slowest-over-fastest ratio of the runs' timed solves (NaN where no run's
+    spread was measured)."""
+    spreads = [c.high / c.low for c in map(timing, (r for _, r in runs.iterrows()))
+               if c.measured and c.low > 0]
+    return max(spreads, default=math.nan)
+
+
+def cheapest(candidates: pd.DataFrame, cost: str, widest: float | None = None) -> Pick:
     """The cheapest of ``candidates`` (one run per integrator) by ``cost``.
 
     ``cost`` is ``"wall_s"`` or an exact count (``"n_f_evals"``, ``"n_steps"``). By wall
     time the cheapest run is named the winner only when the difference exceeds the timing
     spread: every other candidate's fastest solve is slower than its slowest; candidates
-    whose spreads overlap its are ties, and a spread that was not measured (one solve)
-    names no winner. Counts are exact: only equal counts tie.
+    whose spreads overlap its are ties. A candidate solved once (too long for autorange to
+    repeat) is given the relative spread ``widest`` (slowest over fastest; by default the
+    widest measured among the candidates): its fastest is its time over that ratio, its
+    slowest its time times it. Where no spread was measured, no winner is named. Counts are exact: only equal counts tie.
     """
     cands = candidates[candidates[cost].notna()]
     if cands.empty:
@@ -310,8 +321,15 @@ def cheapest(candidates: pd.DataFrame, cost: str) -> Pick:
             text += f"; tied: {', '.join(ties)}"
         return Pick(best, not ties, ties, text)
     t = timing(best)
-    ties = [r["integrator"] for _, r in others.iterrows() if timing(r).low <= t.high]
-    unmeasured = not t.measured or any(not timing(r).measured for _, r in others.iterrows())
+    widest = widest_spread(cands) if widest is None else widest
+
+    # A solve too long to repeat (autorange) gets the widest relative spread measured among
+    # the candidates: its fastest is taken as its one time over that ratio, its slowest as
+    # its time times it.
+    slowest = t.high if t.measured else t.high * widest
+    ties = [r["integrator"] for _, r in others.iterrows()
+            if not (timing(r).low if timing(r).measured else timing(r).low / widest) > slowest]
+    unmeasured = math.isnan(widest)
     text = f"{name}: {t.text()} s"
     if unmeasured and len(cands) > 1:
         text += "; fastest, but no winner: a timing spread was not measured (one solve)"
@@ -355,7 +373,7 @@ def reach(ok: pd.DataFrame, column: str, level: float):
     """The cheapest finished runs of ``ok`` reaching ``level`` in ``column``, by wall time
     and by evaluations, and the integrators that reach it."""
     hits = reaching(ok, column, level)
-    return (cheapest(per_integrator(hits, "wall_s"), "wall_s"),
+    return (cheapest(per_integrator(hits, "wall_s"), "wall_s", widest_spread(ok)),
             cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals"), set(hits["integrator"]))
 
 

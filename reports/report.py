@@ -155,7 +155,9 @@ def _headline(doc: Document, current: pd.DataFrame) -> None:
                  "else the energy error) is at or below the median of the best accuracies the "
                  "methods reached; a final error counts as no better than the reference's own "
                  "accuracy, and by wall time a winner is named only when the difference exceeds "
-                 "the timing spread. Each problem's section has the cheapest run for fixed "
+                 "the timing spread (a run solved once, too long to repeat, is given the "
+                 "widest relative spread measured among the problem's runs). Each "
+                 "problem's section has the cheapest run for fixed "
                  "accuracy targets."))
     doc.add(Table(["problem", "drift", "energy", "cost at matched accuracy"],
                   _headline_rows(current)))

@@ -58,6 +58,22 @@ def test_a_single_timed_solve_names_no_wall_time_winner():
     assert "spread was not measured" in one.text
 
 
+def test_a_solve_too_long_to_repeat_gets_the_widest_measured_spread():
+    # "a" spans 0.9-1.2 (ratio 4/3), "c" 5-10: the widest measured ratio is 2, c's.
+    a = run("a", wall=1.0, spread=(0.1, 0.2))
+    c = run("c", wall=5.0, spread=(0.0, 5.0))
+    beaten = cheapest(frame(a, c, run("b", wall=3.0, repeats=1)), "wall_s")
+    # b's one solve of 3 s counts as no faster than 3 / 2 = 1.5 > 1.2: a wins.
+    assert beaten.winner and beaten.row["integrator"] == "a" and beaten.ties == []
+    close = cheapest(frame(a, c, run("b", wall=2.2, repeats=1)), "wall_s")
+    # 2.2 / 2 = 1.1 <= 1.2: a tie.
+    assert not close.winner and close.ties == ["b"]
+    assert "within the timing spread of b" in close.text
+    # The cheapest solved once: 0.5 s counts as up to 1 s, below c's fastest (5 s).
+    alone = cheapest(frame(run("b", wall=0.5, repeats=1), c), "wall_s")
+    assert alone.winner and alone.row["integrator"] == "b"
+
+
 def test_evaluation_counts_are_exact():
     pick = cheapest(frame(run("a", evals=120), run("b", evals=100), run("c", evals=100)),
                     "n_f_evals")
