@@ -27,7 +27,7 @@ import os
 import statistics
 import time
 
-from benchmarks import compilation, pool
+from benchmarks.perf.processes import like_a_worker
 from benchmarks.records import CommandParser
 
 #: The goal for the share of the solve spent in our callbacks.
@@ -62,10 +62,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rtol", type=float, default=1e-8, help="rtol (atol = rtol)")
     parser.add_argument("--rounds", type=int, default=3, help="timed solves of each key")
     args = parser.parse_args(argv)
-    compilation.enable()
-    os.environ.update(pool.thread_environment())
-
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = like_a_worker()
     print(f"pendulum, t_end = {args.t_end:g} s, rtol = atol = {args.rtol:g}; "
           f"load average at start {load:.2f} on {os.cpu_count()} cores")
     keys = ("ida-ggl", "ida-index1")

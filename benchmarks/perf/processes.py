@@ -1,5 +1,6 @@
-"""Child processes of the self-benchmarks: one run under a time limit, its peak memory, and
-the C yardsticks (compiled here, run as children, compared with ours by their final state).
+"""Processes of the self-benchmarks: one run under a time limit, its peak memory, the C
+yardsticks (compiled here, run as children, compared with ours by their final state), and a
+benchmark that solves in its own process set up as a worker is (:func:`like_a_worker`).
 
 Peak memory is the program's own high-water mark of resident memory, ``VmHWM`` in
 ``/proc/PID/status``, read by the program itself at its end or by its parent while it runs.
@@ -11,6 +12,7 @@ for a child is its parent's (a parent holding 400 MB makes ``/bin/true`` peak at
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import subprocess
@@ -26,6 +28,17 @@ ROOT = Path(__file__).resolve().parents[2]
 YARDSTICKS = Path(__file__).resolve().parent / "yardstick"
 #: Seconds between polls of a running child.
 POLL = 0.05
+
+
+def like_a_worker() -> float:
+    """Set up this process as the suite's workers are, before it first computes: the
+    persistent compilation cache, one intra-op thread and the one-kernel XLA flag
+    (:func:`benchmarks.pool.thread_environment`). Returns the 1-minute load average."""
+    from benchmarks import compilation, pool
+
+    compilation.enable()
+    os.environ.update(pool.thread_environment())
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
 def peak_rss(pid: int | str = "self") -> int | None:

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from benchmarks import compilation, pool
+from benchmarks.perf.processes import like_a_worker
 from benchmarks.records import CommandParser
 
 SPEC = "sps-lattice:N=16,K=8,perturb=0.01"
@@ -73,10 +73,7 @@ def main(argv=None) -> int:
                         choices=["auto", "dense", "banded", "superlu"],
                         help="linear solvers to run, in this order")
     args = parser.parse_args(argv)
-    compilation.enable()
-    os.environ.update(pool.thread_environment())
-
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = like_a_worker()
     print(f"{SPEC}, rattle at h = {args.h:g} to t = {args.t_end:g}; "
           f"load average at start {load:.2f} on {os.cpu_count()} cores")
     print(f"{'path':8} {'status':8} {'t_final':>8} {'max|g|':>9} {'max|Gv|':>9} "
