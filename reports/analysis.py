@@ -15,7 +15,8 @@ Two rules run through every verdict here:
 - **Timing spread.** Wall times are medians of repeated solves with their minimum and
   maximum; one run is named faster than another only when its slowest repeat beat the
   other's fastest (:func:`cheapest`; a run solved once is given the widest relative spread
-  measured among the problem's finished runs at that horizon). Evaluation counts are exact and need no such rule.
+  measured among the problem's finished runs at that horizon). Evaluation counts are exact
+  and need no such rule.
 """
 
 from __future__ import annotations
@@ -305,7 +306,8 @@ def cheapest(candidates: pd.DataFrame, cost: str, widest: float | None = None) -
     whose spreads overlap its are ties. A candidate solved once (too long for autorange to
     repeat) is given the relative spread ``widest`` (slowest over fastest; by default the
     widest measured among the candidates): its fastest is its time over that ratio, its
-    slowest its time times it. Where no spread was measured, no winner is named. Counts are exact: only equal counts tie.
+    slowest its time times it. Where no spread was measured, no winner is named. Counts
+    are exact: only equal counts tie.
     """
     cands = candidates[candidates[cost].notna()]
     if cands.empty:
@@ -323,9 +325,8 @@ def cheapest(candidates: pd.DataFrame, cost: str, widest: float | None = None) -
     t = timing(best)
     widest = widest_spread(cands) if widest is None else widest
 
-    # A solve too long to repeat (autorange) gets the widest relative spread measured among
-    # the candidates: its fastest is taken as its one time over that ratio, its slowest as
-    # its time times it.
+    # A solve too long for autorange to repeat has no spread of its own: it is given the
+    # widest one measured beside it (a ratio), on both sides of its one time.
     slowest = t.high if t.measured else t.high * widest
     ties = [r["integrator"] for _, r in others.iterrows()
             if not (timing(r).low if timing(r).measured else timing(r).low / widest) > slowest]
