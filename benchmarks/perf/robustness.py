@@ -14,8 +14,9 @@ Printed per path: status, where it stopped, max ``|g|`` and ``|G v|``, the large
 error over the energy scale and its class (bounded or drifting), the angular momentum's
 largest change, Newton iterations per step, the solve's wall time (set-up excluded) and
 set-up. The dense path takes minutes (25 min at a load of 2 on this 2-core machine,
-against 41 s for the structured one). The bar: the structured path finishes (``ok``) with max ``|g|`` at most
-:data:`G_BAR`, energy and angular momentum bounded like the dense path's.
+against 41 s for the structured one). The bar: the structured path finishes (``ok``) with
+max ``|g|`` at most :data:`G_BAR`, energy and angular momentum bounded like the dense
+path's.
 
 Usage::
 
