@@ -13,10 +13,10 @@ frozen Jacobian fails.
 Printed per path: status, where it stopped, max ``|g|`` and ``|G v|``, the largest energy
 error over the energy scale and its class (bounded or drifting), the angular momentum's
 largest change, Newton iterations per step, the solve's wall time (set-up excluded) and
-set-up. The dense path takes minutes (25 min at a load of 2 on this 2-core machine,
-against 41 s for the structured one). The bar: the structured path finishes (``ok``) with
-max ``|g|`` at most :data:`G_BAR`, energy and angular momentum bounded like the dense
-path's.
+set-up. The dense path takes minutes (326 s on this 2-core machine, 25 min when another
+process shared it), the structured one 24 to 41 s. The bar: the structured path finishes
+(``ok``) with max ``|g|`` at most :data:`G_BAR`, energy and angular momentum bounded like
+the dense path's.
 
 Usage::
 
