@@ -133,11 +133,9 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
 
     r0 = residual(z0)
     start = (z0, r0, jnp.inf, jnp.inf, norm(z0), 0)
-    if linear is None:
-        state = iterate(start, dense_linear(residual), max_iter)
-    else:
-        state = iterate(start, linear, max_iter)
-
+    state = iterate(start, dense_linear(residual) if linear is None else linear, max_iter)
+    if linear is not None:
+        # Simplified Newton did not converge: the exact Jacobian takes over (docstring).
         def exact(state):
             z, r, it = state[0], state[1], state[-1]
             better = jnp.all(jnp.isfinite(r)) & (norm(r) < norm(r0))
