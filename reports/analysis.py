@@ -178,7 +178,7 @@ def drift_winner(runs: pd.DataFrame) -> Winner:
     best = min(vals, key=vals.get)
     row = rep[rep["integrator"] == best].iloc[0]
     ties = sorted(k for k, v in vals.items() if k != best and v <= TIE_FACTOR * vals[best])
-    verdict = f"{best} ({setting(row)}, t_end={fmt(row['t_end'])}): {fmt(vals[best])}"
+    verdict = f"{best} ({setting(row)}): {fmt(vals[best])}"
     if ties:
         verdict += f"; within {TIE_FACTOR:g}x: {', '.join(ties)}"
     return Winner(best, vals[best], verdict)
@@ -192,7 +192,7 @@ def energy_winner(runs: pd.DataFrame) -> Winner:
     if rep.empty:
         return Winner(None, math.nan, "no conserved energy, or no finished run")
     row = rep.loc[rep["rel_energy_error"].astype(float).idxmin()]
-    cls = f", {row['energy_growth']}" if text(row.get("energy_growth")) else ""
+    cls = f", {growth_kind(row['energy_growth'])}" if text(row.get("energy_growth")) else ""
     return Winner(row["integrator"], float(row["rel_energy_error"]),
                   f"{row['integrator']} ({setting(row)}): {fmt(row['rel_energy_error'])}{cls}")
 
@@ -378,33 +378,118 @@ def reach(ok: pd.DataFrame, column: str, level: float):
             cheapest(per_integrator(hits, "n_f_evals"), "n_f_evals"), set(hits["integrator"]))
 
 
-def cost_winner(runs: pd.DataFrame) -> Winner:
-    """Cheapest method at matched accuracy, by wall time (with its spread) and by
-    evaluations.
+@dataclass
+class Matched:
+    """The accuracy that a problem's methods are compared at for cost.
 
-    The target is the median over methods of the best accuracy each reached (a final error
-    counts as no better than its reference's floor); each method's cost is its cheapest
-    finished run at or below the target; methods that never reach it are named as such.
+    ``metric`` is the :func:`accuracy_metric`; ``target`` the median over methods of the
+    best accuracy each reached; ``ok`` the finished runs at the sweep horizon that measured
+    it; ``best`` each method's best accuracy (a final error counts as no better than its
+    reference's floor).
     """
+
+    metric: str
+    target: float
+    ok: pd.DataFrame
+    best: pd.Series
+
+
+def matched(runs: pd.DataFrame) -> Matched | str:
+    """The :class:`Matched` accuracy of one problem's runs, or why there is none."""
     runs = at_sweep_horizon(runs)
     metric = accuracy_metric(runs)
     if metric is None:
-        return Winner(None, math.nan, "no accuracy measured")
+        return "no accuracy measured"
     ok = runs[(runs["status"] == Status.OK) & runs[metric].notna()]
     if ok.empty:
-        return Winner(None, math.nan, "no finished run with a measured accuracy")
+        return "no finished run with a measured accuracy"
     best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
         .groupby("integrator")["_acc"].min()
-    target = float(np.median(best.values))
-    by_wall, by_evals, reached = reach(ok, metric, target)
-    missed = sorted(set(best.index) - reached)
-    verdict = (f"{LABELS[metric]} ≤ {fmt(target)} at t_end = {fmt(ok['t_end'].iloc[0])}: "
-               f"by wall time {by_wall.text}; by evaluations {by_evals.text}")
+    return Matched(metric, float(np.median(best.values)), ok, best)
+
+
+@dataclass
+class CostWinner(Winner):
+    """A cost verdict in its parts: the matched accuracy (``accuracy``), the cheapest run
+    reaching it by wall time and by evaluations, and the methods that never reach it."""
+
+    accuracy: str = ""
+    by_wall: str = "none"
+    by_evals: str = "none"
+    missed: list[str] = field(default_factory=list)
+
+
+def cost_winner(runs: pd.DataFrame) -> CostWinner:
+    """Cheapest method at matched accuracy, by wall time (with its spread) and by
+    evaluations.
+
+    The target is the median over methods of the best accuracy each reached
+    (:func:`matched`); each method's cost is its cheapest finished run at or below the
+    target; methods that never reach it are named as such.
+    """
+    m = matched(runs)
+    if isinstance(m, str):
+        return CostWinner(None, math.nan, m, accuracy=m)
+    by_wall, by_evals, reached = reach(m.ok, m.metric, m.target)
+    missed = sorted(set(m.best.index) - reached)
+    accuracy = f"{LABELS[m.metric]} ≤ {fmt(m.target)} at t_end = {fmt(m.ok['t_end'].iloc[0])}"
+    verdict = f"{accuracy}: by wall time {by_wall.text}; by evaluations {by_evals.text}"
     if missed:
         verdict += f"; not reached by {', '.join(missed)}"
     row = by_wall.row
-    return Winner(row["integrator"] if by_wall.winner else None,
-                  _num(row["wall_s"]) if row is not None else math.nan, verdict)
+    return CostWinner(row["integrator"] if by_wall.winner else None,
+                      _num(row["wall_s"]) if row is not None else math.nan, verdict,
+                      accuracy, by_wall.text, by_evals.text, missed)
+
+
+@dataclass
+class Standing:
+    """Where one method stands on one problem, as the headline figure places it.
+
+    ``wall_s`` and ``n_f_evals`` are the cost of its cheapest run at the matched accuracy
+    (:func:`matched`), or, where it never reached it (``reached`` false), of its most
+    accurate run; ``drift`` (``max(|g|, |G v + g_t|)``), ``energy`` (max relative energy
+    error) and their growth classes are those of its representative run, the run the
+    headline's drift and energy columns judge (:func:`representative`). ``finished`` is
+    false where that run did not finish.
+    """
+
+    integrator: str
+    wall_s: float
+    n_f_evals: float
+    reached: bool
+    drift: float
+    drift_class: str
+    energy: float
+    energy_class: str
+    finished: bool
+
+
+def growth_kind(value) -> str:
+    """The class word of a stored growth text (``"linear (p = 0.94)"`` -> ``"linear"``)."""
+    return text(value).split(" (")[0]
+
+
+def standings(runs: pd.DataFrame) -> list[Standing]:
+    """Each method's :class:`Standing` on one problem's runs, sorted by integrator; methods
+    without a finished run at the sweep horizon with a measured accuracy have a NaN cost."""
+    m = matched(runs)
+    cost = {}
+    if not isinstance(m, str):
+        acc = m.ok.assign(_acc=[accuracy(r, m.metric) for _, r in m.ok.iterrows()])
+        for key, grp in acc.groupby("integrator"):
+            hits = grp[grp["_acc"] <= m.target]
+            reached = not hits.empty and hits["wall_s"].notna().any()
+            pick = hits.loc[hits["wall_s"].astype(float).idxmin()] if reached else \
+                grp.loc[grp["_acc"].astype(float).idxmin()]
+            cost[key] = (_num(pick["wall_s"]), _num(pick["n_f_evals"]), reached)
+    out = []
+    for _, r in representative(runs).iterrows():
+        wall, evals, reached = cost.get(r["integrator"], (math.nan, math.nan, False))
+        out.append(Standing(r["integrator"], wall, evals, reached, worst_constraint(r),
+                            growth_kind(r.get("pos_growth")), _num(r.get("rel_energy_error")),
+                            growth_kind(r.get("energy_growth")), r["status"] == Status.OK))
+    return out
 
 
 @dataclass

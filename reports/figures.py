@@ -16,11 +16,12 @@ import textwrap
 import numpy as np
 from matplotlib import rc_context
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 from matplotlib.ticker import LogFormatter
 
 from benchmarks import gate
 from benchmarks.records import Status
-from reports.analysis import LABELS, Convergence, History, fmt
+from reports.analysis import LABELS, Convergence, History, Standing, fmt
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
 LOG_FLOOR = 1e-17
@@ -33,6 +34,11 @@ RC = {"svg.hashsalt": "driftbench", "svg.fonttype": "none", "font.size": 8,
 MARKERS = "os^Dv<>pP*Xh"
 #: Height of one row of a figure legend, inches (legend font 7 pt and its spacing).
 LEGEND_ROW = 0.2
+#: Cell colours of the overview by drift class, from kept to lost (a growth class of
+#: :mod:`benchmarks.drift`), and for a run that did not finish.
+CLASS_COLORS = {"bounded": "#a6d96a", "linear": "#fee08b", "quadratic": "#fdae61",
+                "superquadratic": "#f46d43", "exponential": "#d73027",
+                "indeterminate": "#d9d9d9", "did not finish": "#878787"}
 
 
 def palette(families: dict[str, list[str]]) -> dict[str, tuple]:
@@ -155,6 +161,101 @@ def drift(entries: list[dict], colors: dict, title: str) -> str:
             handles, labels = axes[0, 1].get_legend_handles_labels()
         _arrange(fig, 1, 2, (handles, labels), ncols=3)
         fig.suptitle(title)
+        return _svg(fig)
+
+
+def standing(stands: list[Standing], colors: dict, title: str,
+             winner: str | None = None) -> str:
+    """Each method once, drift (left) and energy error (right) against its cost at matched
+    accuracy, log-log.
+
+    A filled marker is a run that reached the matched accuracy, a hollow one the method's
+    most accurate run where it never did; a cross, a representative run that did not
+    finish. The legend gives each method's drift and energy growth classes; ``winner`` (the
+    named cost winner, if any) gets a black ring.
+    """
+    with rc_context(RC):
+        fig, axes = _figure(1, 2, 9.0, 3.2)
+        panels = (("drift", "max(|g|, |G v + g_t|)", "drift_class"),
+                  ("energy", "max rel. energy error", "energy_class"))
+        for ax, (attr, label, _) in zip(axes[0], panels):
+            drawn = 0
+            for st in stands:
+                x, y = st.wall_s, getattr(st, attr)
+                if not (math.isfinite(x) and x > 0 and math.isfinite(y)):
+                    continue
+                color, marker = colors[st.integrator]
+                classes = "; ".join(f"{what} {getattr(st, cls)}" for what, _, cls in panels
+                                    if getattr(st, cls))
+                name = f"{st.integrator} ({classes})" if classes else st.integrator
+                ax.loglog([x], _floor([y]), ls="none", ms=7, mew=1.2, color=color,
+                          marker=marker if st.finished else "x",
+                          mfc=color if st.reached else "none", label=name)
+                if st.integrator == winner:
+                    ax.loglog([x], _floor([y]), ls="none", marker="o", ms=14, mfc="none",
+                              mec="k", mew=1.0, label="cost winner (wall time)")
+                drawn += 1
+            if drawn:
+                ax.set_xlabel("wall time at matched accuracy [s]")
+                ax.set_ylabel(label)
+                ax.set_title(f"{label} against cost")
+            else:
+                _empty(ax, "no conserved energy" if attr == "energy" else
+                       "no method reached a measured accuracy")
+        entries = {}
+        for ax in axes.flat:
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                entries.setdefault(lab, h)
+        # The winner's ring last, after the methods in their order.
+        ring = [lab for lab in entries if lab.startswith("cost winner")]
+        labels = [lab for lab in entries if lab not in ring] + ring
+        _arrange(fig, 1, 2, ([entries[lab] for lab in labels], labels), ncols=2)
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def overview(grid: dict[str, list[Standing]], winners: dict[str, str | None]) -> str:
+    """Problems (rows) by methods (columns), each cell coloured by the drift class of the
+    method's representative run and labelled with its drift (or "failed" where that run did
+    not finish); a black frame marks the cost winner by wall time at matched accuracy.
+    Blank: the method did not run the problem."""
+    problems = list(grid)
+    methods = sorted({st.integrator for stands in grid.values() for st in stands})
+    with rc_context(RC):
+        # Inches: the problem names at the left, the slanted method names above (about
+        # 0.06 inch a character at 8 pt), the legend below; a cell is 0.62 x 0.3.
+        chars = max(map(len, methods), default=0), max(map(len, problems), default=0)
+        left, top, bottom = 0.3 + 0.06 * chars[1], 0.4 + 0.055 * chars[0], 0.75
+        width = left + 0.2 + 0.62 * max(len(methods), 1)
+        height = top + bottom + 0.3 * max(len(problems), 1)
+        fig, axes = _figure(1, 1, width, height)
+        ax = axes[0, 0]
+        ax.grid(False)
+        for i, problem in enumerate(problems):
+            for st in grid[problem]:
+                j = methods.index(st.integrator)
+                cls = st.drift_class if st.finished else "did not finish"
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1,
+                                       color=CLASS_COLORS.get(cls, "#d9d9d9")))
+                if not st.finished or math.isfinite(st.drift):
+                    ax.text(j, i, fmt(st.drift, 1) if st.finished else "failed",
+                            ha="center", va="center", fontsize=6)
+                if winners.get(problem) == st.integrator:
+                    ax.add_patch(Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False,
+                                           ec="k", lw=1.6))
+        ax.set_xlim(-0.5, len(methods) - 0.5)
+        ax.set_ylim(len(problems) - 0.5, -0.5)
+        ax.set_xticks(range(len(methods)), methods, rotation=60, ha="right")
+        ax.set_yticks(range(len(problems)), problems)
+        ax.xaxis.tick_top()
+        ax.tick_params(length=0)
+        handles = [Rectangle((0, 0), 1, 1, color=c) for c in CLASS_COLORS.values()]
+        handles.append(Rectangle((0, 0), 1, 1, fill=False, ec="k", lw=1.6))
+        labels = [f"drift {k}" if k != "did not finish" else k for k in CLASS_COLORS]
+        labels.append("cost winner (wall time)")
+        fig.legend(handles, labels, loc="lower center", ncols=4)
+        fig.subplots_adjust(left=left / width, right=1.0 - 0.2 / width, top=1.0 - top / height,
+                            bottom=bottom / height)
         return _svg(fig)
 
 

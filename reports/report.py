@@ -31,7 +31,8 @@ from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, 
                               PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
                               convergence, cost_winner, drift_winner, energy_winner,
                               floor_text, fmt, history, is_sensitive, largest_floor, latest,
-                              representative, setting, targets as target_rows, text, timing)
+                              representative, setting, standings, targets as target_rows, text,
+                              timing)
 from reports.document import Bullets, Document, Figure, Para, Table, to_html, to_markdown
 from reports.svg import SvgError, clean
 
@@ -86,7 +87,7 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
         doc.add(Para("Families (one hue each in the figures, a shade and marker per "
                      "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
                                                  for f, k in members.items()) + "."))
-    _headline(doc, current)
+    _headline(doc, current, colors)
     _history(doc, runs)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
@@ -133,34 +134,35 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
 
 # --------------------------------------------------------------------------- headline
 
-def _headline_rows(current: pd.DataFrame) -> list[list[str]]:
-    rows = []
-    for problem in sorted(current["problem"].unique()):
-        sub = current[current["problem"] == problem]
-        rows.append([problem, drift_winner(sub).text, energy_winner(sub).text,
-                     cost_winner(sub).text])
-    return rows
-
-
-def _headline(doc: Document, current: pd.DataFrame) -> None:
+def _headline(doc: Document, current: pd.DataFrame, colors: dict) -> None:
     doc.heading(2, "Headline")
     if current.empty:
         doc.add(Para("No runs."))
         return
-    doc.add(Para("Drift: the smallest max(|g|, |G v + g_t|) among each method's run at the "
-                 "longest horizon (methods within a factor of 10 are named as ties). Energy: "
-                 "the smallest max |H - H0| / energy scale among the same runs, with its growth "
-                 "class. Cost: at the horizon of the sweeps, the cheapest run, by wall time and "
-                 "by force evaluations, whose accuracy (final error where a reference exists, "
-                 "else the energy error) is at or below the median of the best accuracies the "
-                 "methods reached; a final error counts as no better than the reference's own "
-                 "accuracy, and by wall time a winner is named only when the difference exceeds "
-                 "the timing spread (a run solved once, too long to repeat, is given the "
-                 "widest relative spread measured among the problem's runs). Each "
-                 "problem's section has the cheapest run for fixed "
-                 "accuracy targets."))
-    doc.add(Table(["problem", "drift", "energy", "cost at matched accuracy"],
-                  _headline_rows(current)))
+    problems = sorted(current["problem"].unique())
+    subs = {p: current[current["problem"] == p] for p in problems}
+    costs = {p: cost_winner(sub) for p, sub in subs.items()}
+    doc.add(Figure("headline", figures.overview({p: standings(sub) for p, sub in subs.items()},
+                                                {p: c.integrator for p, c in costs.items()}),
+                   "Every problem and method: the cell's colour is the growth class of max |g| "
+                   "in the method's run at the longest horizon, its text max(|g|, |G v + g_t|) "
+                   "of that run; a black frame marks the cost winner by wall time at matched "
+                   "accuracy (none where the fastest are within each other's timing spread). "
+                   "Each problem's section places its methods by cost against drift and "
+                   "energy error."))
+    doc.add(Para("Drift: the smallest max(|g|, |G v + g_t|) of each method's run at the "
+                 "longest horizon (ties within 10x). Energy: the smallest max |H - H0| / "
+                 "energy scale of the same runs, with its growth class. Cost: at the sweeps' "
+                 "horizon, the matched accuracy is the median of the best accuracies the "
+                 "methods reached (final error where a reference exists, counted no better "
+                 "than the reference, else energy error); the cheapest run reaching it is "
+                 "named by wall time only when its slowest solve beat every other's fastest "
+                 "(a run solved once gets the widest spread measured beside it), and by "
+                 "force evaluations."))
+    doc.add(Table(["problem", "drift", "energy", "matched accuracy", "cheapest by wall time [s]",
+                   "cheapest by evaluations"],
+                  [[p, drift_winner(subs[p]).text, energy_winner(subs[p]).text,
+                    costs[p].accuracy, costs[p].by_wall, costs[p].by_evals] for p in problems]))
 
 
 def _history(doc: Document, runs: pd.DataFrame) -> None:
@@ -273,6 +275,16 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
                      "exponentially, so its final errors and scd measure that separation more "
                      "than a method's accuracy; drift, energy error and cost are the measures "
                      "to compare, and the drift gate does not gate on it."))
+    doc.heading(3, f"{problem}: drift and energy error against cost")
+    cost = cost_winner(runs)
+    doc.add(Figure(f"{problem}-standing",
+                   figures.standing(standings(runs), colors, problem, cost.integrator),
+                   f"Each method once. Across: the median wall time of its cheapest run "
+                   f"reaching the matched accuracy ({cost.accuracy}); hollow markers: the "
+                   f"most accurate run of a method that never reached it. Up: max(|g|, "
+                   f"|G v + g_t|) and max rel. energy error of its run at the longest horizon, "
+                   f"a cross where that run did not finish; the legend gives their growth "
+                   f"classes; a black ring marks the cost winner by wall time."))
     doc.heading(3, f"{problem}: summary")
     _summary(doc, runs)
     bad = runs[runs["status"] != Status.OK]

@@ -137,6 +137,21 @@ def test_every_problem_has_a_figure_and_the_main_sections_are_there(report):
     assert "Study: flexible-modal" in secs
 
 
+def test_the_headline_figure_is_one_per_report_and_one_per_problem(report):
+    out, paths = report
+    names = sorted(p.name for p in paths if "standing" in p.name or p.stem == "headline")
+    assert names == ["headline.svg", "pendulum-standing.svg", "sps-receiver-standing.svg"]
+    md, html = (out / "report.md").read_text(), (out / "report.html").read_text()
+    # The overview sits in the headline above its table, in both reports.
+    headline = md[md.index("## Headline"):md.index("## History")]
+    assert headline.index("(figures/headline.svg)") < headline.index("| problem |")
+    secs = sections(html)
+    assert secs["Headline"].index("<svg") < secs["Headline"].index("<table")
+    for problem in ("pendulum", "sps-receiver"):
+        assert f"(figures/{problem}-standing.svg)" in md
+        assert "against cost" in secs[f"Problem: {problem}"]
+
+
 def test_drift_classes_and_orders_are_the_recorded_ones(report):
     """The report shows what each run recorded; it reconstructs nothing."""
     out, _ = report

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from reports.analysis import (accuracy, at_floor, cheapest, convergence, cost_winner, fit,
-                              history, targets, timing)
+                              history, standings, targets, timing)
 
 
 def run(integrator, h=None, rtol=None, status="ok", wall=1.0, spread=(0.0, 0.0), repeats=3,
@@ -108,6 +108,30 @@ def test_the_reference_error_does_not_decide_the_cost_at_matched_accuracy():
     win = cost_winner(runs)
     assert win.integrator == "a"
     assert "≤ 6e-12" in win.text and "not reached by c" in win.text
+
+
+def test_the_headline_figure_places_each_method_by_its_cost_at_matched_accuracy():
+    # Best accuracies 1e-8 (a), 1e-6 (b), 1e-3 (c): matched at their median, 1e-6. a's
+    # cheapest run reaching it is its coarse one; b reaches it only at its finest; c never
+    # does and is placed at its most accurate run. Drift and energy are those of each
+    # method's run at the longest horizon (b's failed there).
+    runs = frame(run("a", h=0.1, wall=1.0, final=1e-6, pos=1e-9),
+                 run("a", h=0.01, wall=5.0, final=1e-8, pos=1e-10),
+                 run("b", h=0.1, wall=0.5, final=1e-4, pos=1e-5),
+                 run("b", h=0.01, wall=3.0, final=1e-6, pos=1e-6),
+                 run("c", rtol=1e-3, wall=0.1, final=1e-2, pos=1e-3),
+                 run("c", rtol=1e-4, wall=0.2, final=1e-3, pos=1e-4),
+                 run("a", h=0.1, wall=90.0, t_end=100.0, pos=1e-12, energy=1e-7,
+                     energy_growth="bounded (p = 0.01)", pos_growth="bounded (round-off)"),
+                 run("b", h=0.1, status="failed", wall=None, t_end=100.0, pos=1e-2))
+    got = {st.integrator: st for st in standings(runs)}
+    assert (got["a"].wall_s, got["a"].n_f_evals, got["a"].reached) == (1.0, 100, True)
+    assert (got["b"].wall_s, got["b"].reached) == (3.0, True)
+    assert (got["c"].wall_s, got["c"].reached) == (0.2, False)
+    assert got["a"].drift == 1e-12 and got["a"].energy == 1e-7 and got["a"].finished
+    assert (got["a"].drift_class, got["a"].energy_class) == ("bounded", "bounded")
+    assert got["b"].drift == 1e-2 and not got["b"].finished
+    assert got["c"].drift == 1e-3  # one horizon: its coarsest run (rtol 1e-3) represents it
 
 
 # --------------------------------------------------------------------------- targets
