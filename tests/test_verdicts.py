@@ -24,7 +24,8 @@ def run(integrator, h=None, rtol=None, status="ok", wall=1.0, spread=(0.0, 0.0),
             "t_end": t_end, "status": status, "wall_s": wall,
             "wall_min_s": None if missing else wall - spread[0],
             "wall_max_s": None if missing else wall + spread[1], "repeats": repeats,
-            "n_f_evals": evals, "n_steps": None if evals is None else evals // 2, "final_state_error": final, "reference_floor": floor,
+            "n_f_evals": evals, "n_steps": None if evals is None else evals // 2,
+            "final_state_error": final, "reference_floor": floor,
             "max_pos_residual": pos, "max_vel_residual": pos, "rel_energy_error": energy,
             "sensitive": 0, "nominal_order": extra.pop("order", math.nan), **extra}
 
