@@ -30,6 +30,7 @@ REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
     "baumgarte-dopri8": ("integrators.baumgarte:BaumgarteEmbeddedRK", {"solver": "dopri8"}),
     "genalpha": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "index3"}),
     "genalpha-ggl": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "ggl"}),
+    "hht": ("integrators.genalpha:HHT", {"formulation": "index3"}),
 }
 
 

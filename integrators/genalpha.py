@@ -37,6 +37,18 @@ class Coefficients(NamedTuple):
         gamma = 0.5 - alpha_m + alpha_f
         return cls(alpha_m, alpha_f, gamma, 0.25 * (gamma + 0.5) ** 2)
 
+    @classmethod
+    def hht(cls, alpha: float) -> "Coefficients":
+        """Hilber, Hughes and Taylor's (1977) method for its ``alpha`` in [-1/3, 0].
+
+        The member ``alpha_m = 0``, ``alpha_f = -alpha`` of the family, with their
+        ``gamma = 1/2 - alpha`` and ``beta = (1 - alpha)^2 / 4``: Chung and Hulbert's
+        second-order condition ``gamma = 1/2 - alpha_m + alpha_f`` and their
+        ``beta = (gamma + 1/2)^2 / 4`` hold, and the spectral radius at infinity is
+        ``(1 + alpha) / (1 - alpha)``, from 1 (``alpha = 0``) down to 1/2.
+        """
+        return cls(0.0, -alpha, 0.5 - alpha, 0.25 * (1.0 - alpha) ** 2)
+
 
 class State(NamedTuple):
     """The state the method carries from step to step.
@@ -53,7 +65,126 @@ class State(NamedTuple):
 
 
 @dataclass(frozen=True)
-class GeneralizedAlpha(FixedStep):
+class AlphaMethod(FixedStep):
+    """The step of the generalized-alpha family for the coefficients a member chooses.
+
+    The equations, their scaling and their solution are those of :class:`GeneralizedAlpha`;
+    a member supplies :meth:`coefficients` and declares the options ``h``, its parameter,
+    ``formulation``, ``newton_tol``, ``newton_max_iter`` and ``linear_solver`` as fields.
+    """
+
+    family: ClassVar[str] = "generalized-alpha"
+    nominal_order: ClassVar[int] = 2
+
+    def coefficients(self) -> Coefficients:
+        """``alpha_m, alpha_f, gamma, beta`` of the member."""
+        raise NotImplementedError
+
+    @property
+    def enforces(self) -> tuple[str, ...]:
+        return ("position", "velocity") if FORMULATIONS[self.formulation] else ("position",)
+
+    def check(self) -> None:
+        super().check()
+        name = type(self).__name__
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"{name}: formulation = {self.formulation!r} must be one "
+                             f"of {', '.join(FORMULATIONS)}")
+        if FORMULATIONS[self.formulation] and self.linear_solver not in ("auto", "dense"):
+            raise ValueError(f"{name}: linear_solver = {self.linear_solver!r} is not "
+                             "available for the ggl form (it solves densely)")
+
+    def equations(self, mech: Mechanics, state: State, t, h):
+        """The scaled step equations from ``state`` at ``t``.
+
+        Returns ``residual(z)``, the warm start ``z0`` (the previous acceleration-like
+        variable and multipliers, ``mu = 0``) and ``advance(z) -> State`` at ``t + h``.
+        """
+        c = self.coefficients()
+        ggl = FORMULATIONS[self.formulation]
+        n, m = mech.n, mech.m
+        q, v, a, acc, lam = state
+        t1, bh2 = t + h, c.beta * h * h
+        q_hat = q + h * v + h * h * (0.5 - c.beta) * a
+        v_hat = v + h * (1 - c.gamma) * a
+        # beta h^2 times the part of acc_{n+1} that the previous step fixes.
+        acc_hat = bh2 * (c.alpha_m * a - c.alpha_f * acc)
+
+        def kinematics(z):
+            x = z[:n]
+            q1 = q_hat + x + (mech.GT(q, t, z[n + m:]) if ggl else 0.0)
+            v1 = v_hat + (c.gamma / (c.beta * h)) * x
+            acc1 = ((1 - c.alpha_m) * x + acc_hat) / (1 - c.alpha_f)  # beta h^2 acc_{n+1}
+            return q1, v1, acc1
+
+        def residual(z):
+            q1, v1, acc1 = kinematics(z)
+            rows = [mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
+                    + mech.GT(q1, t1, z[n:n + m]),
+                    mech.g(q1, t1)]
+            if ggl:
+                rows.append((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1))
+            return jnp.concatenate(rows)
+
+        def advance(z):
+            q1, v1, acc1 = kinematics(z)
+            return State(q1, v1, z[:n] / bh2, acc1 / bh2, z[n:n + m] / bh2)
+
+        z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
+        return residual, z0, advance
+
+    def simplified(self, mech: Mechanics, schur, state: State, t):
+        """Simplified Newton's correction of the index-3 equations on the structured path.
+
+        The iteration matrix frozen at ``q_n`` without the force Jacobian and the
+        derivative of ``G^T Lambda``, ``[c M, G_0^T; G_0, 0]`` with ``c = (1 - alpha_m) /
+        (1 - alpha_f)``, eliminated through ``S_0 = G_0 M^{-1} G_0^T``:
+        ``S_0 dLambda = c R_g - G_0 M^{-1} R_M`` and ``dx = -M^{-1} (R_M + G_0^T dLambda) / c``.
+        One factorisation of ``S_0`` per step.
+        """
+        coef = self.coefficients()
+        cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
+        n, q = mech.n, state.q
+        S0 = schur.factor(q, t)
+
+        def linear(z, r):
+            MinvR = mech.solve_mass(q, r[:n])
+            dLam = schur.solve(S0, cm * r[n:] - mech.G_times(q, t, MinvR))
+            dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
+            return jnp.concatenate([dx, dLam]), jnp.max(jnp.abs(z))
+
+        return linear, S0.ok
+
+    def start(self, mech: Mechanics, schur, q0, v0, t0) -> State:
+        """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
+        acc, lam = mech.accelerations(t0, q0, v0, schur=schur)
+        return State(q0, v0, acc, acc, lam)
+
+    def step(self, mech: Mechanics, schur, state: State, t, h):
+        """One step (:class:`integrators.fixed.FixedStep`)."""
+        residual, z0, advance = self.equations(mech, state, t, h)
+        linear, ok = (None, True) if schur.name == "dense" else self.simplified(
+            mech, schur, state, t)
+        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
+        it = sol.iterations
+        # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
+        extra_G = int(FORMULATIONS[self.formulation])
+        counts = {"n_f_evals": it + 1, "n_jac_evals": it + extra_G, "n_newton": it,
+                  "n_lin_solves": it}
+        return advance(sol.z), newton_failure(sol.converged, ok), sol.residual, counts
+
+    def observe(self, mech: Mechanics, state: State):
+        """``(q, v)``."""
+        return state.q, state.v
+
+    def linear_algebra(self, mech: Mechanics):
+        # The ggl form's mu enters through G^T mu without M^{-1}: its elimination needs
+        # solves with G G^T, which only the dense path does.
+        return mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)
+
+
+@dataclass(frozen=True)
+class GeneralizedAlpha(AlphaMethod):
     """Generalized-alpha (Chung and Hulbert 1993) for constrained systems (Arnold and Bruls 2007).
 
     One step from ``(q_n, v_n, a_n, \\ddot q_n)`` to ``t_{n+1} = t_n + h``:
@@ -88,7 +219,8 @@ class GeneralizedAlpha(FixedStep):
     average acceleration), without numerical damping; ``rho_inf < 1`` damps the
     frequencies the step does not resolve and the resolved ones by O((omega h)^3) per
     period, so that the energy of a conservative system decays. The method is not
-    symplectic. Order 2 in ``q`` and ``v``.
+    symplectic. Order 2 in ``q`` and ``v``. Hilber, Hughes and Taylor's method is the
+    family's member with ``alpha_m = 0`` (:class:`HHT`).
 
     In the index-3 form the constraint directions behave as infinitely stiff modes: their
     errors propagate with the double eigenvalue ``-rho_inf`` of the method at infinite
@@ -154,108 +286,82 @@ class GeneralizedAlpha(FixedStep):
     newton_max_iter: int = 20
     linear_solver: str = "auto"
 
-    family: ClassVar[str] = "generalized-alpha"
-    nominal_order: ClassVar[int] = 2
-
-    @property
-    def enforces(self) -> tuple[str, ...]:
-        return ("position", "velocity") if FORMULATIONS[self.formulation] else ("position",)
+    def coefficients(self) -> Coefficients:
+        return Coefficients.from_rho_inf(self.rho_inf)
 
     def check(self) -> None:
         super().check()
         if not 0.0 <= self.rho_inf <= 1.0:
             raise ValueError(f"GeneralizedAlpha: rho_inf = {self.rho_inf} must lie in [0, 1]")
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"GeneralizedAlpha: formulation = {self.formulation!r} must be one "
-                             f"of {', '.join(FORMULATIONS)}")
-        if FORMULATIONS[self.formulation] and self.linear_solver not in ("auto", "dense"):
-            raise ValueError(f"GeneralizedAlpha: linear_solver = {self.linear_solver!r} is not "
-                             "available for the ggl form (it solves densely)")
 
-    def equations(self, mech: Mechanics, state: State, t, h):
-        """The scaled step equations from ``state`` at ``t``.
 
-        Returns ``residual(z)``, the warm start ``z0`` (the previous acceleration-like
-        variable and multipliers, ``mu = 0``) and ``advance(z) -> State`` at ``t + h``.
-        """
-        c = Coefficients.from_rho_inf(self.rho_inf)
-        ggl = FORMULATIONS[self.formulation]
-        n, m = mech.n, mech.m
-        q, v, a, acc, lam = state
-        t1, bh2 = t + h, c.beta * h * h
-        q_hat = q + h * v + h * h * (0.5 - c.beta) * a
-        v_hat = v + h * (1 - c.gamma) * a
-        # beta h^2 times the part of acc_{n+1} that the previous step fixes.
-        acc_hat = bh2 * (c.alpha_m * a - c.alpha_f * acc)
+@dataclass(frozen=True)
+class HHT(AlphaMethod):
+    """Hilber, Hughes and Taylor's alpha method (HHT-alpha, 1977, Earthquake Eng. Struct.
+    Dyn. 5:283-292) as the member of the generalized-alpha family with ``alpha_m = 0``.
 
-        def kinematics(z):
-            x = z[:n]
-            q1 = q_hat + x + (mech.GT(q, t, z[n + m:]) if ggl else 0.0)
-            v1 = v_hat + (c.gamma / (c.beta * h)) * x
-            acc1 = ((1 - c.alpha_m) * x + acc_hat) / (1 - c.alpha_f)  # beta h^2 acc_{n+1}
-            return q1, v1, acc1
+    For a linear system ``M \\ddot q + K q = F`` HHT's step is Newmark's with
+    ``gamma = 1/2 - alpha`` and ``beta = (1 - alpha)^2 / 4`` and the equation of motion
 
-        def residual(z):
-            q1, v1, acc1 = kinematics(z)
-            rows = [mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
-                    + mech.GT(q1, t1, z[n:n + m]),
-                    mech.g(q1, t1)]
-            if ggl:
-                rows.append((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1))
-            return jnp.concatenate(rows)
+    .. math::
 
-        def advance(z):
-            q1, v1, acc1 = kinematics(z)
-            return State(q1, v1, z[:n] / bh2, acc1 / bh2, z[n:n + m] / bh2)
+        M a_{n+1} + (1 + \\alpha) K q_{n+1} - \\alpha K q_n = F(t_{n+1 + \\alpha}),
+        \\qquad \\alpha \\in [-1/3, 0],
 
-        z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
-        return residual, z0, advance
+    which is :class:`GeneralizedAlpha`'s step with
 
-    def simplified(self, mech: Mechanics, schur, state: State, t):
-        """Simplified Newton's correction of the index-3 equations on the structured path.
+    .. math::
 
-        The iteration matrix frozen at ``q_n`` without the force Jacobian and the
-        derivative of ``G^T Lambda``, ``[c M, G_0^T; G_0, 0]`` with ``c = (1 - alpha_m) /
-        (1 - alpha_f)``, eliminated through ``S_0 = G_0 M^{-1} G_0^T``:
-        ``S_0 dLambda = c R_g - G_0 M^{-1} R_M`` and ``dx = -M^{-1} (R_M + G_0^T dLambda) / c``.
-        One factorisation of ``S_0`` per step.
-        """
-        coef = Coefficients.from_rho_inf(self.rho_inf)
-        cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
-        n, q = mech.n, state.q
-        S0 = schur.factor(q, t)
+        \\alpha_m = 0, \\quad \\alpha_f = -\\alpha, \\quad \\gamma = \\tfrac12 - \\alpha,
+        \\quad \\beta = \\tfrac14 (1 - \\alpha)^2
 
-        def linear(z, r):
-            MinvR = mech.solve_mass(q, r[:n])
-            dLam = schur.solve(S0, cm * r[n:] - mech.G_times(q, t, MinvR))
-            dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
-            return jnp.concatenate([dx, dLam]), jnp.max(jnp.abs(z))
+    (Chung and Hulbert 1993; :meth:`Coefficients.hht`). For constrained and nonlinear
+    systems the step is Arnold and Bruls's (2007, Multibody Syst. Dyn. 18:185-202) form of
+    the family, which averages accelerations, ``a_{n+1} = (1 + alpha) \\ddot q_{n+1} -
+    alpha \\ddot q_n``, and imposes the equations of motion and the constraints at
+    ``t_{n+1}``; for the linear system above it is HHT's method exactly. Order 2 in ``q``
+    and ``v`` for every ``alpha`` (the second-order condition ``gamma = 1/2 - alpha_m +
+    alpha_f`` holds); not symplectic. The spectral radius at infinity is ``rho_inf =
+    (1 + alpha) / (1 - alpha)``, from 1 at ``alpha = 0`` down to 1/2 at ``alpha = -1/3``.
 
-        return linear, S0.ok
+    Two members coincide with members of Chung and Hulbert's one-parameter choice:
+    ``alpha = 0`` is the trapezoidal rule (Newmark's average acceleration), the method of
+    ``GeneralizedAlpha`` with ``rho_inf = 1`` (whose ``alpha_m = alpha_f = 1/2`` make
+    ``a = \\ddot q`` at every step), and ``alpha = -1/3`` is ``rho_inf = 1/2``
+    (``alpha_m = 0``, ``alpha_f = 1/3`` there too). In between, HHT damps the resolved
+    frequencies more than Chung and Hulbert's choice for the same ``rho_inf``.
 
-    def start(self, mech: Mechanics, schur, q0, v0, t0) -> State:
-        """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
-        acc, lam = mech.accelerations(t0, q0, v0, schur=schur)
-        return State(q0, v0, acc, acc, lam)
+    The registry key ``hht`` is the index-3 form, as in multibody codes (Negrut, Rampalli,
+    Ottarsson and Sajdak 2007, J. Comput. Nonlinear Dyn. 2:73-85, the HHT integrator of
+    Adams Solver): ``g = 0`` at every step end, ``G v + g_t = 0`` not enforced. Its
+    constraint errors propagate with the method's eigenvalues at infinite frequency, so
+    the index-3 form inherits the instability that :class:`GeneralizedAlpha` describes
+    for ``rho_inf`` near 1 as ``alpha`` approaches 0; ``formulation = "ggl"`` gives the
+    stabilised index-2 form.
 
-    def step(self, mech: Mechanics, schur, state: State, t, h):
-        """One step (:class:`integrators.fixed.FixedStep`)."""
-        residual, z0, advance = self.equations(mech, state, t, h)
-        linear, ok = (None, True) if schur.name == "dense" else self.simplified(
-            mech, schur, state, t)
-        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
-        it = sol.iterations
-        # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
-        extra_G = int(FORMULATIONS[self.formulation])
-        counts = {"n_f_evals": it + 1, "n_jac_evals": it + extra_G, "n_newton": it,
-                  "n_lin_solves": it}
-        return advance(sol.z), newton_failure(sol.converged, ok), sol.residual, counts
+    Parameters
+    ----------
+    h : float
+        Step size (shrunk to divide the horizon evenly).
+    alpha : float
+        HHT's parameter, in [-1/3, 0]. The default -0.3 is Adams Solver's default for its
+        index-3 HHT integrator; its ``rho_inf`` = 0.54 is close to the 0.5 that keeps
+        :class:`GeneralizedAlpha`'s index-3 form stable on every problem of the suites.
+    formulation, newton_tol, newton_max_iter, linear_solver
+        As for :class:`GeneralizedAlpha`.
+    """
 
-    def observe(self, mech: Mechanics, state: State):
-        """``(q, v)``."""
-        return state.q, state.v
+    h: float = 0.01
+    alpha: float = -0.3
+    formulation: str = "index3"
+    newton_tol: float = 1e-16
+    newton_max_iter: int = 20
+    linear_solver: str = "auto"
 
-    def linear_algebra(self, mech: Mechanics):
-        # The ggl form's mu enters through G^T mu without M^{-1}: its elimination needs
-        # solves with G G^T, which only the dense path does.
-        return mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)
+    def coefficients(self) -> Coefficients:
+        return Coefficients.hht(self.alpha)
+
+    def check(self) -> None:
+        super().check()
+        if not -1.0 / 3.0 <= self.alpha <= 0.0:
+            raise ValueError(f"HHT: alpha = {self.alpha} must lie in [-1/3, 0]")
