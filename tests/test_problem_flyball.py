@@ -123,7 +123,9 @@ def test_short_runs_are_ok(case):
 def test_ida_ggl_reaches_the_reference_s():
     case, traj = solve("flyball-governor", "ida-ggl", rtol=1e-8, atol=1e-8)
     err, _ = reference_error(case, traj)
-    # The benchmark's bar: s(10) within 1e-6 at rtol 1e-8 (measured: about 4e-7).
+    # The benchmark's bar: s(10) within 1e-6 at rtol 1e-8. Measured 5.8e-7 (2974 steps);
+    # the same forces summed in another order gave 4.0e-7 (2779 steps): an adaptive step
+    # sequence follows round-off, and the error its tolerance allows moves with it.
     assert err <= 1e-6
     # The balance to the tolerance times the energy scale, over 10 s.
     assert np.max(traj.windows["inv:energy_balance"]) <= 1e-6 * case.energy_scale
