@@ -32,8 +32,8 @@ its ``createModel.cpp`` and of Exudyn's ``stiffFlyballGovernorKT.py``, which agr
   length, which is what the parameters suggest;
 * the table's rate ``2 pi`` rad/s is held by a drive (a rheonomic constraint on the shaft
   angle, ``phi = omega t``), the whole mechanism starting in rigid rotation at that rate.
-  (The OpenSim implementation gives the shaft only that initial rate; with the drive the
-  rate stays the table's throughout, and the drive's work enters the energy balance.)
+  (The OpenSim implementation's model sets only that initial rate; with the drive the rate
+  stays the table's throughout, and the drive's work enters the energy balance.)
 
 Coordinates
 -----------
@@ -77,8 +77,8 @@ L sin theta_i))) + K sum_i (l_i - l_0)^2 / 2`` with the spring lengths ``l_i(s, 
 
 Energy balance
 --------------
-Neither energy nor any function of ``(q, v)`` alone is conserved: the drive feeds work in
-and the dampers take it out. The balance
+No function of the mechanism's state alone is conserved: the drive feeds work in and the
+dampers take it out. The balance
 
 .. math::
 
