@@ -46,7 +46,7 @@ _MODULES = (
     "problems.andrews", "problems.car_axis", "problems.double_pendulum", "problems.chain",
     "problems.four_bar", "problems.sps_ring", "problems.sps_lattice", "problems.rigid_body",
     "problems.bricard",
-    "problems.rigid_chain",
+    "problems.rigid_chain", "problems.flyball_governor",
 )
 
 
