@@ -31,6 +31,9 @@ TRACER_ADVICE = ("it is not traceable by JAX: it converts a traced value to a Py
                  "and jnp.where instead")
 #: Relative asymmetry of a mass matrix accepted as round-off.
 SYMMETRY_TOL = 1e-12
+#: Largest mass given by ``kinetic`` that is formed densely to check it (eigenvalues);
+#: above, its blocks are checked by their Cholesky factors.
+DENSE_AUDIT_MAX = 2000
 
 
 def explain(exc: BaseException) -> str:
@@ -87,7 +90,22 @@ def audit(case) -> None:
     n, m = s.n, s.m
     f64 = jnp.float64
     q, v, t = (jnp.asarray(case.q0, f64), jnp.asarray(case.v0, f64), jnp.asarray(case.t0, f64))
-    if callable(s.mass):
+    if s.kinetic is not None:
+        _check(case, "kinetic(q, v)", s.kinetic, lambda: s.kinetic(q, v), ())
+        _check(case, "d kinetic / dq (autodiff)", s.kinetic,
+               lambda: jax.grad(s.kinetic, argnums=0)(q, v), (n,))
+        M = None
+        if n <= DENSE_AUDIT_MAX:
+            M = _check(case, "mass from kinetic (autodiff)", s.kinetic,
+                       lambda: case.mech.mass(q), (n, n))
+        elif case.mech.mass_blocks is not None:
+            # Too large to form: the blocks' Cholesky factors are finite exactly where
+            # every block is positive definite.
+            for L in case.mech.mass_factor(q):
+                if not all(np.all(np.isfinite(np.asarray(L[i][i]))) for i in range(len(L))):
+                    raise _refuse(case, f"mass of problem {case.name!r} (from kinetic) is "
+                                        f"not positive definite at q0", s.kinetic)
+    elif callable(s.mass):
         M = _check(case, "mass(q)", s.mass, lambda: s.mass(q), (n, n))
         _check(case, "d mass / dq (autodiff)", s.mass, lambda: jax.jacfwd(s.mass)(q), (n, n, n))
     else:
@@ -96,10 +114,10 @@ def audit(case) -> None:
         if M.shape != (n, n) or not np.all(np.isfinite(M)):
             raise _refuse(case, f"mass of problem {case.name!r} has shape {M.shape}, not "
                                 f"({n}, {n}) or ({n},), or is not finite")
-    mass = s.mass if callable(s.mass) else None
-    if np.max(np.abs(M - M.T)) > SYMMETRY_TOL * max(np.max(np.abs(M)), 1.0):
+    mass = s.kinetic if s.kinetic is not None else s.mass if callable(s.mass) else None
+    if M is not None and np.max(np.abs(M - M.T)) > SYMMETRY_TOL * max(np.max(np.abs(M)), 1.0):
         raise _refuse(case, f"mass of problem {case.name!r} is not symmetric at q0", mass)
-    if np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) <= 0.0:
+    if M is not None and np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) <= 0.0:
         raise _refuse(case, f"mass of problem {case.name!r} is not positive definite at q0 "
                             f"(smallest eigenvalue {np.min(np.linalg.eigvalsh(M)):.3g})", mass)
     if s.potential is not None:

@@ -90,9 +90,6 @@ class AlphaMethod(FixedStep):
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"{name}: formulation = {self.formulation!r} must be one "
                              f"of {', '.join(FORMULATIONS)}")
-        if FORMULATIONS[self.formulation] and self.linear_solver not in ("auto", "dense"):
-            raise ValueError(f"{name}: linear_solver = {self.linear_solver!r} is not "
-                             "available for the ggl form (it solves densely)")
 
     def equations(self, mech: Mechanics, state: State, t, h):
         """The scaled step equations from ``state`` at ``t``.
@@ -134,26 +131,36 @@ class AlphaMethod(FixedStep):
         return residual, z0, advance
 
     def simplified(self, mech: Mechanics, schur, state: State, t):
-        """Simplified Newton's correction of the index-3 equations on the structured path.
+        """Simplified Newton's correction on the structured path.
 
         The iteration matrix frozen at ``q_n`` without the force Jacobian and the
-        derivative of ``G^T Lambda``, ``[c M, G_0^T; G_0, 0]`` with ``c = (1 - alpha_m) /
-        (1 - alpha_f)``, eliminated through ``S_0 = G_0 M^{-1} G_0^T``:
-        ``S_0 dLambda = c R_g - G_0 M^{-1} R_M`` and ``dx = -M^{-1} (R_M + G_0^T dLambda) / c``.
-        One factorisation of ``S_0`` per step.
+        derivatives of ``M``, ``G^T Lambda`` and ``G v``, with ``c = (1 - alpha_m) / (1 -
+        alpha_f)``. Index 3, ``[c M, G_0^T; G_0, 0]``, eliminated through ``S_0 = G_0
+        M^{-1} G_0^T``: ``S_0 dLambda = c R_g - G_0 M^{-1} R_M`` and ``dx = -M^{-1} (R_M +
+        G_0^T dLambda) / c``. GGL, ``[c M, G_0^T, 0; G_0, 0, P_0; G_0, 0, 0]`` with the
+        Gram matrix ``P_0 = G_0 G_0^T`` (``mu`` moves ``q`` along ``G_0^T`` without
+        ``M^{-1}``): the last row fixes ``G_0 dx = -R_v``, so ``S_0 dLambda = c R_v - G_0
+        M^{-1} R_M``, ``dx`` as before and ``P_0 dmu = R_v - R_g``. One factorisation of
+        ``S_0`` (and of ``P_0``) per step.
         """
         coef = self.coefficients()
         cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
-        n, q = mech.n, state.q
+        n, m, q = mech.n, mech.m, state.q
+        ggl = FORMULATIONS[self.formulation]
         S0 = schur.factor(q, t)
+        gram = mech.gram(schur.name) if ggl else None
+        P0 = gram.factor(q, t) if ggl else None
 
         def linear(z, r):
-            MinvR = mech.solve_mass(q, r[:n])
-            dLam = schur.solve(S0, cm * r[n:] - mech.G_times(q, t, MinvR))
+            r_M, r_g = r[:n], r[n:n + m]
+            r_v = r[n + m:] if ggl else r_g
+            MinvR = mech.solve_mass(q, r_M)
+            dLam = schur.solve(S0, cm * r_v - mech.G_times(q, t, MinvR))
             dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
-            return jnp.concatenate([dx, dLam]), jnp.max(jnp.abs(z))
+            parts = [dx, dLam] + ([gram.solve(P0, r_v - r_g)] if ggl else [])
+            return jnp.concatenate(parts), jnp.max(jnp.abs(z))
 
-        return linear, S0.ok
+        return linear, S0.ok & P0.ok if ggl else S0.ok
 
     def start(self, mech: Mechanics, schur, q0, v0, t0) -> State:
         """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
@@ -177,10 +184,6 @@ class AlphaMethod(FixedStep):
         """``(q, v)``."""
         return state.q, state.v
 
-    def linear_algebra(self, mech: Mechanics):
-        # The ggl form's mu enters through G^T mu without M^{-1}: its elimination needs
-        # solves with G G^T, which only the dense path does.
-        return mech.schur("dense" if FORMULATIONS[self.formulation] else self.linear_solver)
 
 
 @dataclass(frozen=True)
@@ -274,9 +277,8 @@ class GeneralizedAlpha(AlphaMethod):
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu"}
-        Linear algebra of the index-3 form (:func:`linalg.schur.choose`): large sparse
-        systems use simplified Newton through ``G M^{-1} G^T`` (:meth:`simplified`). The
-        ``ggl`` form always solves densely (its ``mu`` needs solves with ``G G^T``).
+        Linear algebra (:func:`linalg.schur.choose`): large sparse systems use simplified
+        Newton through ``G M^{-1} G^T`` and, for ``ggl``, ``G G^T`` (:meth:`simplified`).
     """
 
     h: float = 0.01

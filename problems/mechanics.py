@@ -37,6 +37,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from linalg.blocks import Blocks  # noqa: E402
 from linalg.schur import choose  # noqa: E402
 
 Array = jax.Array
@@ -50,9 +51,9 @@ class System:
     ----------
     n, m : int
         Number of coordinates and of constraints.
-    mass : callable or array_like
+    mass : callable or array_like or None
         ``mass(q) -> (n, n)``, or a constant ``(n, n)`` matrix, or a constant diagonal
-        ``(n,)``. Symmetric positive definite.
+        ``(n,)``. Symmetric positive definite. ``None`` when ``kinetic`` gives it.
     constraints : callable
         ``g(q, t) -> (m,)``, holonomic; may depend on ``t`` (then set ``rheonomic``).
     potential : callable, optional
@@ -67,6 +68,11 @@ class System:
     sensitive : bool
         The motion is chaotic: exact comparisons against a reference are meaningless and
         the drift gate reports but does not gate it.
+    kinetic : callable, optional
+        ``T(q, v) -> scalar``, the kinetic energy ``v^T M(q) v / 2``, in place of ``mass``
+        for large systems: ``M`` is then never formed. Its pattern is traced from ``T``
+        (the Hessian in ``v``), and a block-diagonal one (one block per body) is solved
+        blockwise and on the structured linear algebra (:mod:`linalg.blocks`).
     """
 
     n: int
@@ -78,6 +84,7 @@ class System:
     rheonomic: bool = False
     invariants: Mapping[str, Callable[[Array, Array], Array]] = field(default_factory=dict)
     sensitive: bool = False
+    kinetic: Callable[[Array, Array], Array] | None = None
 
     @cached_property
     def mech(self) -> "Mechanics":
@@ -95,7 +102,11 @@ class Mechanics:
     def __init__(self, system: System):
         self.system = system
         self.n, self.m = system.n, system.m
-        self.constant_mass = not callable(system.mass)
+        if (system.mass is None) == (system.kinetic is None):
+            raise ValueError("give the mass either as mass or as kinetic, not "
+                             + ("neither" if system.mass is None else "both"))
+        self.kinetic = system.kinetic
+        self.constant_mass = self.kinetic is None and not callable(system.mass)
         #: The constant diagonal of ``M`` when it is one (``None`` otherwise): such a mass is
         #: never formed as a matrix, so that its cost and memory stay ``O(n)``.
         self.mass_diagonal = None
@@ -115,10 +126,33 @@ class Mechanics:
         self.separable = self.constant_mass and system.forces is None
 
     # --- mass, momentum, Hamiltonian -------------------------------------------------
+    @cached_property
+    def mass_blocks(self) -> Blocks | None:
+        """The block-diagonal structure of a mass given by ``kinetic`` (``None`` for any
+        other mass, or where a block exceeds :data:`linalg.blocks.BLOCK_MAX`).
+
+        The pattern is the Hessian pattern of ``T`` in ``v``, traced from ``T`` at ``q = 0``
+        (structural, like ``G``'s)."""
+        if self.kinetic is None:
+            return None
+        pattern = asdex.hessian_sparsity(lambda v: self.kinetic(jnp.zeros(self.n), v),
+                                         jnp.zeros(self.n))
+        blocks = Blocks(np.asarray(pattern.rows), np.asarray(pattern.cols), self.n)
+        return blocks if blocks.block_diagonal else None
+
+    def mass_factor(self, q: Array) -> list[Array]:
+        """The Cholesky factors of the blocks of ``M(q)`` (:attr:`mass_blocks`), from one
+        product ``M(q) s`` per seed."""
+        blocks = self.mass_blocks
+        products = jax.vmap(lambda s: self.mass_times(q, s))(jnp.asarray(blocks.seeds()))
+        return blocks.factor(blocks.values(products))
+
     def mass(self, q: Array) -> Array:
         """Mass matrix ``M(q)`` (dense; :meth:`mass_times` avoids forming it)."""
         if self.mass_diagonal is not None:
             return jnp.diag(jnp.asarray(self.mass_diagonal))
+        if self.kinetic is not None:
+            return jax.jacfwd(lambda v: self.mass_times(q, v))(jnp.zeros(self.n))
         return self._M if self.constant_mass else self.system.mass(q)
 
     def mass_times(self, q: Array, x: Array) -> Array:
@@ -126,6 +160,10 @@ class Mechanics:
         if self.mass_diagonal is not None:
             d = jnp.asarray(self.mass_diagonal)
             return (d[:, None] if x.ndim == 2 else d) * x
+        if self.kinetic is not None:
+            # T is quadratic in v: its gradient in v at x is M(q) x.
+            Mx = jax.grad(self.kinetic, argnums=1)
+            return jax.vmap(lambda c: Mx(q, c), 1, 1)(x) if x.ndim == 2 else Mx(q, x)
         return self.mass(q) @ x
 
     def solve_mass(self, q: Array, b: Array) -> Array:
@@ -135,6 +173,8 @@ class Mechanics:
             return b / (d[:, None] if b.ndim == 2 else d)
         if self.constant_mass:
             return self._Minv @ b
+        if self.mass_blocks is not None:
+            return self.mass_blocks.solve(self.mass_factor(q), b)
         # LU, not Cholesky: under jacfwd the Cholesky solve's tangents become batched
         # triangular solves, which XLA's CPU backend runs about 200x slower than LU's.
         return jnp.linalg.solve(self.mass(q), b)
@@ -163,6 +203,10 @@ class Mechanics:
         """``dH/dq``, including the derivative of ``M(q)^{-1}`` for a varying mass."""
         if self.constant_mass:
             return self.grad_potential(q)
+        if self.kinetic is not None:
+            # H_q(q, p) = -L_q(q, v) at v = H_p(q, p): no derivative through the solve.
+            v = self.velocity(q, p)
+            return self.grad_potential(q) - jax.grad(self.kinetic, argnums=0)(q, v)
         return jax.grad(self.hamiltonian, argnums=0)(q, p)
 
     def H_p(self, q: Array, p: Array) -> Array:
@@ -187,6 +231,10 @@ class Mechanics:
         ``c = grad_q(v^T M v)/2 - (dM/dq . v) v``.
         """
         F = -self.grad_potential(q) + self.external(t, q, v)
+        if self.kinetic is not None:
+            # Lagrange: d/dt (dT/dv) - dT/dq = M a + D_q(M(q) v)[v] - dT/dq.
+            Mv = jax.jvp(lambda x: self.mass_times(x, v), (q,), (v,))[1]
+            return F + jax.grad(self.kinetic, argnums=0)(q, v) - Mv
         if not self.constant_mass:
             dM_v = jax.jvp(self.system.mass, (q,), (v,))[1]
             F = F + 0.5 * jax.grad(lambda x: v @ self.system.mass(x) @ v)(q) - dM_v @ v
@@ -235,12 +283,52 @@ class Mechanics:
         compressed = asdex.compressed_jacobian_from_coloring(lambda x: self.g(x, t), coloring)(q)
         return asdex.decompress_data(compressed, coloring)
 
+    @cached_property
+    def whitened_coloring(self) -> asdex.ColoredPattern:
+        """The pattern of ``G L^{-T}`` (``M = L L^T`` blockwise: :attr:`mass_blocks`) and a
+        colouring of it: ``G``'s pattern with each entry spread over its block."""
+        rows, cols = self.mass_blocks.spread(*self.G_pattern())
+        pattern = asdex.SparsityPattern.from_coo(rows, cols, (self.m, self.n))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", asdex.DenseColoringWarning)
+            return asdex.jacobian_coloring_from_sparsity(pattern)
+
+    def whitened_values(self, q: Array, t: Array) -> Array:
+        """The entries of ``G(q, t) L(q)^{-T}`` in the order of :attr:`whitened_coloring`,
+        as the compressed Jacobian of ``y -> g(q + L^{-T} y, t)`` at ``y = 0``: the
+        structured Schur solvers take them with a unit mass, since ``(G L^{-T})(G
+        L^{-T})^T = G M^{-1} G^T``."""
+        coloring, blocks = self.whitened_coloring, self.mass_blocks
+        L = self.mass_factor(q)
+        compressed = asdex.compressed_jacobian_from_coloring(
+            lambda y: self.g(q + blocks.whiten(L, y), t), coloring)(jnp.zeros(self.n))
+        return asdex.decompress_data(compressed, coloring)
+
     def schur(self, kind: str = "auto"):
-        """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`), built once."""
+        """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`), built once.
+
+        A block-diagonal mass reaches the structured solvers whitened: ``G L^{-T}`` with a
+        unit mass (:meth:`whitened_values`)."""
         cache = self.__dict__.setdefault("_schur", {})
         if kind not in cache:
-            cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
-                                 self.mass_diagonal, self.G_pattern, self.G_values)
+            if self.mass_blocks is not None:
+                def whitened_pattern():
+                    sparsity = self.whitened_coloring.sparsity
+                    return np.asarray(sparsity.rows), np.asarray(sparsity.cols)
+                cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
+                                     np.ones(self.n), whitened_pattern, self.whitened_values)
+            else:
+                cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
+                                     self.mass_diagonal, self.G_pattern, self.G_values)
+        return cache[kind]
+
+    def gram(self, kind: str = "auto"):
+        """The solver for the Gram matrix ``G G^T`` (a unit mass; the stabilised index-2
+        forms move ``q`` along ``G^T mu``), built once, of the kind :meth:`schur` uses."""
+        cache = self.__dict__.setdefault("_gram", {})
+        if kind not in cache:
+            cache[kind] = choose(kind, (self.m, self.n), self.G, lambda q, b: b,
+                                 np.ones(self.n), self.G_pattern, self.G_values)
         return cache[kind]
 
     def g_t(self, q: Array, t: Array) -> Array:

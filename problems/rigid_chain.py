@@ -101,10 +101,16 @@ fixed point, ``J_O omega' + omega x J_O omega = d x R^T (-m_b g_0 e_z)`` with ``
 *Mechanics*, 3rd ed., 1976, sections 32 and 36); for ``N = 2, 3`` they agree with an
 independent Newton-Euler formulation in space axes with the joint reactions as unknowns.
 
-The mass is assembled densely as ``(n, n)`` (the interface of
-:class:`~problems.mechanics.System`), and the forward-mode Jacobians that the implicit
-methods build through ``M(q)`` carry one ``(n, n)`` tangent per coordinate, so their memory
-and cost per step grow like ``N^3``: the size limit (see :func:`rigid_chain`) is low.
+The mass is given through the kinetic energy (``System.kinetic``),
+
+.. math::
+
+    T(q, v) = \\sum_k \\tfrac12 m_b |x_k'|^2 + \\tfrac12 e_k'^T \\big(4 E(e_k)^T J E(e_k) +
+    4 j_0 e_k e_k^T\\big) e_k',
+
+body by body, so ``M`` is never formed: its block-diagonal pattern is traced from ``T``,
+its blocks are factorised one by one and the structured linear algebra runs on
+``G L^{-T}`` (:mod:`linalg.blocks`), with cost linear in ``N``.
 """
 
 from __future__ import annotations
@@ -153,12 +159,7 @@ def initial_state(N: int, l: float, theta0: float, precession: float, spin: floa
     return q0, v0
 
 
-# Forward-mode Jacobians through the dense (7N)^2 mass carry one (n, n) tangent per
-# coordinate: memory grows like N^3. Measured peaks (5 steps, h = 0.01): lobatto3ab4 3.0 GB
-# at N = 16 and 17.7 GB at N = 32 (140 GB asked for at N = 64); rattle 2.7 GB and
-# genalpha-ggl 5.4 GB at N = 64 (rattle asks for 190 GB at N = 300). Every method stays
-# within a few GB up to N = 16.
-@register("rigid-chain", size_limit=16)
+@register("rigid-chain")
 def rigid_chain(N: int = 4, mass: float = 1.0, half_length: float = 0.5, J1: float = 0.09,
                 J2: float = 0.11, J3: float = 0.04, gravity: float = 9.81,
                 theta0: float = 0.6, precession: float = 1.0, spin: float = 4.0,
@@ -175,17 +176,11 @@ def rigid_chain(N: int = 4, mass: float = 1.0, half_length: float = 0.5, J1: flo
                          "positive moments, each at most the sum of the other two)")
     n, l, m_b = 7 * N, float(half_length), float(mass)
     Jd, j0 = jnp.asarray(J), float(J.mean())
-    # Index arrays that scatter the (N, 7, 7) blocks onto the diagonal of the (n, n) mass:
-    # one scatter whatever N (block_diag would trace N separate pieces).
-    idx = 7 * np.arange(N)[:, None] + np.arange(7)
-    rows, cols = idx[:, :, None], idx[:, None, :]
-    translational = m_b * jnp.eye(3)
 
-    def mass_matrix(q):
-        e = q.reshape(N, 7)[:, 3:]
+    def kinetic(q, v):
+        e, xd, ed = q.reshape(N, 7)[:, 3:], v.reshape(N, 7)[:, :3], v.reshape(N, 7)[:, 3:]
         quat = jax.vmap(quaternion_mass, in_axes=(0, None, None))(e, Jd, j0)
-        blocks = jnp.zeros((N, 7, 7)).at[:, :3, :3].set(translational).at[:, 3:, 3:].set(quat)
-        return jnp.zeros((n, n)).at[rows, cols].set(blocks)
+        return 0.5 * m_b * jnp.sum(xd * xd) + 0.5 * jnp.einsum("ki,kij,kj->", ed, quat, ed)
 
     def constraints(q, t):
         b = q.reshape(N, 7)
@@ -207,12 +202,11 @@ def rigid_chain(N: int = 4, mass: float = 1.0, half_length: float = 0.5, J1: flo
         return orbital + own
 
     system = System(
-        n=n, m=4 * N, mass=mass_matrix, constraints=constraints, potential=potential,
-        invariants={"L_z": angular_momentum_z}, sensitive=N >= 3,
+        n=n, m=4 * N, mass=None, constraints=constraints, potential=potential,
+        invariants={"L_z": angular_momentum_z}, sensitive=N >= 3, kinetic=kinetic,
     )
     q0, v0 = initial_state(N, l, theta0, precession, spin)
-    kinetic = 0.5 * float(v0 @ np.asarray(mass_matrix(jnp.asarray(q0))) @ v0)
-    energy_scale = m_b * gravity * l * N * N + kinetic
+    energy_scale = m_b * gravity * l * N * N + float(kinetic(jnp.asarray(q0), jnp.asarray(v0)))
     if not energy_scale > 0:
         raise ValueError("rigid-chain: without gravity the chain must move (precession or "
                          "spin non-zero), or its energy has no scale")

@@ -159,6 +159,9 @@ MALFORMED = [
     ("mass-not-spd", BODY.format(**{**GOOD, "name": "u-spd", "mass":
                                     "lambda q: jnp.diag(jnp.array([1.0, -1.0]))"}), "u-spd",
      ["mass", "not positive definite"]),
+    ("kinetic-not-spd", BODY.format(**{**GOOD, "name": "u-kin", "mass":
+                                       "None, kinetic=lambda q, v: 0.5 * (v[0] ** 2 - v[1] ** 2)"}),
+     "u-kin", ["mass", "not positive definite"]),
     ("not-traceable", BODY.format(**{**GOOD, "name": "u-trace", "constraints":
                                      "lambda q, t: jnp.array([np.sqrt(q @ q) - 1.0])"}),
      "u-trace",

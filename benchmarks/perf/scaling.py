@@ -2,7 +2,8 @@
 
 What runs
     Every family (default ``rattle``, ``lobatto3ab3``, ``baumgarte-rk4`` and ``ida-ggl``) on
-    ``chain:N`` and ``sps-ring:N`` (hub rows on) for N = 64, 256, 1024, 4096, 16384, each
+    ``chain:N``, ``sps-ring:N`` (hub rows on) and ``rigid-chain:N`` for N = 64, 256, 1024,
+    4096, 16384, each
     point in a fresh process, N ascending, the families of one N one after another so that
     a change in the machine's load hits them alike. Each point takes :data:`STEPS` steps of
     a fixed step size per problem (:data:`STEP_SIZES`); ``ida-ggl`` runs at rtol = atol =
@@ -14,6 +15,15 @@ What runs
     and ``baumgarte-rk4``), and the C RATTLE ran 2000 steps of the chain at N = 16384 with
     ``h = 2e-5`` (at ``4e-5`` its Newton failed). ``lobatto3ab3`` was checked the same way
     on the chain at N = 16 only and not on the ring; ``ida-ggl`` chooses its own steps.
+
+    ``rigid-chain:N`` (N rigid bodies in Euler parameters, a block-diagonal mass given by
+    the kinetic energy: :mod:`linalg.blocks`) runs at ``h = 5e-4``. Its fastest motion
+    grows like ``sqrt(N)``: the joint forces near the top carry the weight of the whole
+    chain, about ``N m_b g_0``, against a body's moment of inertia of about 0.1 kg m^2 at
+    lever 0.5 m, so ``omega`` is about ``sqrt(0.5 N m_b g_0 / 0.1)``, 900 rad/s at N =
+    16384, and ``h omega`` about 0.45, inside RATTLE's and RK4's stability intervals with
+    a margin of four or more. Per body, ``n = 7`` and ``m = 4`` against the chain's 2 and
+    1 per link; the bars compare rattle's time per body with its time per link.
 
     At each chain N the C yardstick ``benchmarks/perf/yardstick/rattle_chain.c`` runs the same
     steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
@@ -104,7 +114,7 @@ from benchmarks.records import EXIT_INPUT, CommandParser
 FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
 SIZES = (64, 256, 1024, 4096, 16384)
 #: Fixed step per problem, stable at N = 16384 (module docstring).
-STEP_SIZES = {"chain": 1e-5, "sps-ring": 1e-4}
+STEP_SIZES = {"chain": 1e-5, "sps-ring": 1e-4, "rigid-chain": 5e-4}
 STEPS = 100
 #: Tolerance of the adaptive families (atol = rtol).
 RTOL = 1e-8
@@ -134,6 +144,9 @@ SPARK_SIZE, SPARK_MEMORY, SPARK_RATIO, SPARK_STEPS = 4096, 2 << 30, 30.0, 100
 RATTLE_MEMORY_SIZE, RATTLE_MEMORY = 16384, 2 << 30
 RING_SIZE, RING_H, RING_STEPS, RING_RTOL = 1024, 1e-4, 100, 1e-8
 RING_SECONDS, RING_POS = 60.0, 1e-10
+#: rigid-chain: rattle's time per body at most this multiple of its time per link on the
+#: chain, and every family's peak memory under RIGID_MEMORY, at RIGID_SIZE.
+RIGID_SIZE, RIGID_PER_BODY, RIGID_MEMORY = 16384, 10.0, 2 << 30
 
 
 @dataclass
@@ -433,6 +446,18 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
         _find(points, "chain", "rattle", RATTLE_MEMORY_SIZE), f"rattle at N={RATTLE_MEMORY_SIZE}",
         RATTLE_MEMORY))
     out.extend(ring_bars(points, settings))
+    out.append(_ratio_bar(
+        f"rattle time per body on rigid-chain:N={RIGID_SIZE} <= {RIGID_PER_BODY:g}x its time "
+        f"per link on chain:N={RIGID_SIZE}",
+        (_find(points, "rigid-chain", "rattle", RIGID_SIZE),
+         _find(points, "chain", "rattle", RIGID_SIZE)),
+        (f"rattle on rigid-chain at N={RIGID_SIZE}", f"rattle on chain at N={RIGID_SIZE}"),
+        RIGID_PER_BODY, "x"))
+    for family in settings["families"] if "rigid-chain" in settings["problems"] else ():
+        out.append(_memory_bar(
+            f"{family} on rigid-chain:N={RIGID_SIZE}: peak memory < {RIGID_MEMORY / 2**30:g} GiB",
+            _find(points, "rigid-chain", family, RIGID_SIZE), f"{family} at N={RIGID_SIZE}",
+            RIGID_MEMORY))
     return out
 
 
@@ -515,7 +540,7 @@ def write(out: Path, data: dict, points: list[Point]) -> list[Path]:
 def parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m benchmarks.perf.scaling", description=__doc__.split("\n")[0])
     p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
-                   help="problems (default: chain sps-ring)")
+                   help="problems (default: chain sps-ring rigid-chain)")
     p.add_argument("--n", nargs="+", type=int, default=list(SIZES),
                    help="sizes N (default: 64 256 1024 4096 16384)")
     p.add_argument("--families", nargs="+", default=list(FAMILIES),
@@ -524,7 +549,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=STEPS, help=f"steps per point (default {STEPS})")
     p.add_argument("--h", nargs="+", default=[], metavar="PROBLEM=H",
                    help="step size of a problem, e.g. chain=2e-5 (default: chain=1e-5 "
-                        "sps-ring=1e-4)")
+                        "sps-ring=1e-4 rigid-chain=5e-4)")
     p.add_argument("--rtol", type=float, default=RTOL,
                    help=f"rtol = atol of adaptive families (default {RTOL:g})")
     p.add_argument("--limit", type=float, default=LIMIT,

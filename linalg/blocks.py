@@ -1,0 +1,155 @@
+"""Block-diagonal mass matrices: one small dense block per body, found from the pattern.
+
+A rigid body in Euler parameters, a node of natural coordinates with its own inertia, or a
+point mass contributes a block of the mass matrix that couples only its own coordinates,
+so ``M(q)`` is block diagonal after a permutation. :class:`Blocks` finds the blocks as the
+connected components of the pattern of ``M`` (traced by the caller) and works with them
+in ``O(n k^2)`` for blocks of size at most ``k``, grouped by size so that each group is one
+batched operation:
+
+- the values of every block from ``k`` products ``M(q) s_c`` with the seeds
+  ``s_c = sum of e_j over the coordinates j at position c of their block`` (the column
+  colouring of a block-diagonal matrix: no two columns of one colour share a row);
+- the Cholesky factors ``M_b = L_b L_b^T``, solves with ``M``, and the *whitening*
+  ``y -> L^{-T} y``, which turns ``S = G M^{-1} G^T`` into ``S = \\hat G \\hat G^T`` with
+  ``\\hat G = G L^{-T}``: the structured Schur solvers then run with a unit mass on
+  ``\\hat G``, whose pattern is that of ``G`` with every entry spread over its block
+  (:meth:`Blocks.spread`).
+
+The factorisation and the substitutions are unrolled over the entries of a block and
+vectorised over the blocks of a group, and every gather takes a flat index: LAPACK calls
+and multi-dimensional gathers would keep XLA from compiling the time loop into one kernel
+(:mod:`linalg.banded`, :func:`linalg.pattern.gather`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from linalg.pattern import gather
+
+#: Largest block treated as a block: bodies and nodes have up to 7 coordinates (a rigid
+#: body in Euler parameters) or 12 (a body in natural coordinates).
+BLOCK_MAX = 12
+
+
+class Blocks:
+    """The block structure of a symmetric ``n x n`` pattern (module notes).
+
+    Parameters
+    ----------
+    rows, cols : ndarray
+        The structural nonzeros of ``M``.
+    n : int
+        Its size.
+
+    Attributes
+    ----------
+    groups : list of ndarray, each (B, k)
+        The coordinates of each block, grouped by block size ``k`` (ascending within a
+        block).
+    size : int
+        The largest block size (the number of seeds :meth:`values` needs).
+    """
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int):
+        graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        members: dict[int, list[int]] = {}
+        for j, b in enumerate(label):
+            members.setdefault(int(b), []).append(j)
+        by_size: dict[int, list[list[int]]] = {}
+        for coords in members.values():
+            by_size.setdefault(len(coords), []).append(coords)
+        self.n = n
+        self.groups = [np.array(by_size[k], dtype=np.int64) for k in sorted(by_size)]
+        self.size = max(by_size)
+        #: Position of each coordinate within its block, and its block's coordinates
+        #: (a row per coordinate, padded with -1).
+        self.position = np.empty(n, dtype=np.int64)
+        self.members = np.full((n, self.size), -1, dtype=np.int64)
+        for group in self.groups:
+            k = group.shape[1]
+            self.position[group] = np.arange(k)[None, :]
+            self.members[group.ravel(), :k] = np.repeat(group, k, axis=0)
+        #: Where each coordinate lands when the groups are laid out one after the other,
+        #: position-major within a group (the order :meth:`_apply` works in).
+        self.inverse = np.argsort(np.concatenate([g.T.ravel() for g in self.groups]))
+
+    @property
+    def block_diagonal(self) -> bool:
+        """Whether every block is at most :data:`BLOCK_MAX` (else treat ``M`` as dense)."""
+        return self.size <= BLOCK_MAX
+
+    def seeds(self) -> np.ndarray:
+        """``(size, n)``: seed ``c`` is 1 on the coordinates at position ``c`` of a block."""
+        return (self.position[None, :] == np.arange(self.size)[:, None]).astype(np.float64)
+
+    def values(self, products: jax.Array) -> list[jax.Array]:
+        """The blocks ``(k, k, B)`` of each group from ``products[c] = M s_c`` (``(size,
+        n)``): entry ``(i, j)`` of block ``b`` is row ``coords[i]`` of the product with the
+        seed of position ``j``."""
+        out = []
+        for group in self.groups:
+            B, k = group.shape
+            rows = gather(products[:k].T, jnp.asarray(group.T.ravel()))   # (k B, k)
+            out.append(rows.reshape(k, B, k).transpose(0, 2, 1))
+        return out
+
+    def factor(self, blocks: list[jax.Array]) -> list[list[list[jax.Array]]]:
+        """The lower Cholesky factors of the blocks, entry by entry (``L[i][j]`` is a
+        ``(B,)`` vector over the group's blocks)."""
+        factors = []
+        for A in blocks:
+            k = A.shape[0]
+            L = [[None] * k for _ in range(k)]
+            for j in range(k):
+                for i in range(j, k):
+                    acc = A[i, j] - sum((L[i][l] * L[j][l] for l in range(j)),
+                                        jnp.zeros_like(A[i, j]))
+                    L[i][j] = jnp.sqrt(acc) if i == j else acc / L[j][j]
+            factors.append(L)
+        return factors
+
+    def _apply(self, factors, x: jax.Array, forward: bool, backward: bool) -> jax.Array:
+        """``L^{-1}`` (``forward``), then ``L^{-T}`` (``backward``) blockwise on ``x``."""
+        vec = x.ndim == 1
+        x = x[:, None] if vec else x
+        parts = []
+        for group, L in zip(self.groups, factors):
+            B, k = group.shape
+            y = list(gather(x, jnp.asarray(group.T.ravel())).reshape(k, B, -1))
+            if forward:
+                for i in range(k):
+                    y[i] = (y[i] - sum((L[i][l][:, None] * y[l] for l in range(i)),
+                                       jnp.zeros_like(y[i]))) / L[i][i][:, None]
+            if backward:
+                for i in reversed(range(k)):
+                    y[i] = (y[i] - sum((L[l][i][:, None] * y[l] for l in range(i + 1, k)),
+                                       jnp.zeros_like(y[i]))) / L[i][i][:, None]
+            parts.append(jnp.stack(y).reshape(k * B, -1))
+        out = gather(jnp.concatenate(parts), jnp.asarray(self.inverse))
+        return out[:, 0] if vec else out
+
+    def solve(self, factors, b: jax.Array) -> jax.Array:
+        """``M^{-1} b`` (``b`` a vector or ``(n, r)`` columns)."""
+        return self._apply(factors, b, True, True)
+
+    def whiten(self, factors, y: jax.Array) -> jax.Array:
+        """``L^{-T} y`` blockwise, so that ``G L^{-T}`` has ``(G L^{-T})(G L^{-T})^T = G M^{-1}
+        G^T``."""
+        return self._apply(factors, y, False, True)
+
+    def spread(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pattern of ``G L^{-T}`` from that of ``G``: each entry spread over its
+        column's block (sorted by row, then column)."""
+        spread = self.members[cols]                               # (nnz, size)
+        keep = spread >= 0
+        # int64: row times n passes 2^31 for large systems.
+        rows = np.repeat(np.asarray(rows, dtype=np.int64), self.size)[keep.ravel()]
+        flat = np.unique(rows * self.n + spread[keep])
+        return flat // self.n, flat % self.n
