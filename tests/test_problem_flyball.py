@@ -133,11 +133,11 @@ def test_ida_ggl_reaches_the_reference_s():
 
 @pytest.mark.slow
 def test_reference_solves_agree_to_the_stored_floor():
-    """Both solves rerun (DOP853 at 2.5e-14, Radau at 1e-12): the stored states come
-    back, and their difference is the stored error estimate."""
+    """Both solves rerun (DOP853 at 2.5e-14, Radau at 1e-12) to the first stored time
+    (the whole horizon takes ten times as long): the stored state comes back, and their
+    difference is within the stored error estimate."""
     stored = data.load("flyball-governor")["entries"]
-    fresh = regenerate()["entries"]
-    for old, new in zip(stored, fresh, strict=True):
-        # Same code and arithmetic: the same numbers, up to the platform's libm.
-        np.testing.assert_allclose(new["q"], old["q"], rtol=0, atol=1e-13)
-        assert new["error_estimate"] <= max(e["error_estimate"] for e in stored) * 1.01
+    new, = regenerate(times=(stored[0]["t"],))["entries"]
+    # Same code and arithmetic: the same numbers, up to the platform's libm.
+    np.testing.assert_allclose(new["q"], stored[0]["q"], rtol=0, atol=1e-13)
+    assert new["error_estimate"] <= max(e["error_estimate"] for e in stored) * 1.01

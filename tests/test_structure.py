@@ -129,7 +129,8 @@ def test_a_mass_given_by_the_kinetic_energy_is_solved_blockwise_and_whitened():
 
 
 @pytest.mark.parametrize("key", [
-    "rattle", pytest.param("lobatto3ab3", marks=pytest.mark.slow),
+    pytest.param("rattle", marks=pytest.mark.slow),
+    pytest.param("lobatto3ab3", marks=pytest.mark.slow),
     pytest.param("genalpha", marks=pytest.mark.slow),
     pytest.param("baumgarte-rk4", marks=pytest.mark.slow)])
 def test_a_block_mass_gives_the_dense_result_on_the_structured_path(key):
@@ -271,15 +272,13 @@ def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path(
         assert np.max(traj.windows["pos"]) <= 1e-13
 
 
-@pytest.mark.parametrize("spec, h, t_end", [
-    ("sps-ring:N=6", 0.01, 1.0),
-    pytest.param("rigid-chain:N=2", 0.005, 0.5, marks=pytest.mark.slow)])
-def test_generalized_alpha_ggl_gives_the_dense_result_on_the_structured_path(spec, h, t_end):
+def test_generalized_alpha_ggl_gives_the_dense_result_on_the_structured_path():
     # The GGL form's mu needs solves with G G^T beside G M^-1 G^T (two factors per step).
-    # Measured: the paths agree to 1e-14 (q) and 6e-14 (v) on both.
-    _, dense = solve(spec, "genalpha-ggl:linear_solver=dense", t_end, h=h)
+    # Measured: the paths agree to 1e-14 (q) and 4e-14 (v) here, and to 2e-14 and 6e-14
+    # on rigid-chain:N=2 (block mass; left out for its compile time).
+    _, dense = solve("sps-ring:N=6", "genalpha-ggl:linear_solver=dense", 1.0, h=0.01)
     for kind in STRUCTURED:
-        _, traj = solve(spec, f"genalpha-ggl:linear_solver={kind}", t_end, h=h)
+        _, traj = solve("sps-ring:N=6", f"genalpha-ggl:linear_solver={kind}", 1.0, h=0.01)
         assert traj.linear_solver == kind
         assert np.max(np.abs(traj.q_final - dense.q_final)) <= 1e-12
         assert np.max(np.abs(traj.v_final - dense.v_final)) <= 1e-12

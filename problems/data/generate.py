@@ -218,11 +218,11 @@ def governor_rhs(t, y, p):
     return np.concatenate([y[4:], [s_dd], theta_dd, [w_dd]])
 
 
-def flyball_governor():
+def flyball_governor(times=(1.0, 5.0, 10.0)):
     from problems.flyball_governor import S, flyball_governor as factory
 
     case = factory()
-    p, times = dict(case.params), [1.0, 5.0, 10.0]
+    p, times = dict(case.params), list(times)
     y0 = np.concatenate([case.q0[1:], case.v0[1:]])
     solves = {}
     for method, rtol in (("DOP853", TIGHT_RTOL), ("Radau", RADAU_RTOL)):
