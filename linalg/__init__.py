@@ -1,7 +1,9 @@
 """Linear algebra below the integrators: solves with ``S = G M^{-1} G^T`` chosen by structure.
 
 Modules: :mod:`linalg.dense` (the one rank policy, small solves, the dense Schur solver),
-:mod:`linalg.pattern` (sparsity patterns, compressed Jacobians), :mod:`linalg.banded`
+:mod:`linalg.pattern` (sparsity patterns, compressed Jacobians), :mod:`linalg.blocks`
+(block-diagonal masses: blockwise factors, solves and the whitening of ``G``),
+:mod:`linalg.banded`
 (banded Cholesky in JAX), :mod:`linalg.sparse` (SuperLU through a callback) and
 :mod:`linalg.schur` (the choice of solver by structure). Every function takes ``G``'s values
 or its Jacobian function, its pattern and the mass (or a mass solve) as arguments; nothing

@@ -7,7 +7,9 @@ A problem author writes only the physics of
     M(q)\\,\\ddot q = -\\nabla U(q) + f(t, q, \\dot q) + c(q, \\dot q) - G(q, t)^T \\lambda,
     \\qquad g(q, t) = 0,
 
-as pure JAX functions: the mass matrix ``M(q)`` (or a constant matrix or diagonal), the
+as pure JAX functions: the mass matrix ``M(q)`` (or a constant matrix or diagonal, or,
+for large models, the kinetic energy ``T(q, v) = v^T M(q) v / 2`` so that ``M`` is never
+formed), the
 potential ``U(q)``, the holonomic constraints ``g(q, t)`` and optional non-conservative
 forces ``f(t, q, v)``. This module is the one place where everything else is derived by
 automatic differentiation: the constraint Jacobian ``G = dg/dq``, ``g_t``, the
