@@ -68,6 +68,8 @@ class Blocks:
         self.n = n
         self.groups = [np.array(by_size[k], dtype=np.int64) for k in sorted(by_size)]
         self.size = max(by_size)
+        if not self.block_diagonal:
+            return  # treated as dense: no index arrays of n x size
         #: Position of each coordinate within its block, and its block's coordinates
         #: (a row per coordinate, padded with -1).
         self.position = np.empty(n, dtype=np.int64)
