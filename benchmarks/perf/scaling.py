@@ -22,7 +22,9 @@ What runs
     chain, about ``N m_b g_0``, against a body's moment of inertia of about 0.1 kg m^2 at
     lever 0.5 m, so ``omega`` is about ``sqrt(0.5 N m_b g_0 / 0.1)``, 900 rad/s at N =
     16384, and ``h omega`` about 0.45, inside RATTLE's and RK4's stability intervals with
-    a margin of four or more. Per body, ``n = 7`` and ``m = 4`` against the chain's 2 and
+    a margin of four or more (measured at N = 16384 over the 100 steps: max ``|H - H0|``
+    at most 4.8e-7 against an energy scale of 1.3e9 for rattle, lobatto3ab3 and
+    baumgarte-rk4; max ``|g|`` at most 3.1e-11 with coordinates of order 1e4). Per body, ``n = 7`` and ``m = 4`` against the chain's 2 and
     1 per link; the bars compare rattle's time per body with its time per link.
 
     At each chain N the C yardstick ``benchmarks/perf/yardstick/rattle_chain.c`` runs the same
