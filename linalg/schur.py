@@ -10,14 +10,14 @@ Every family solves systems with the constraint Schur complement
 in RATTLE's projections, in the eliminated stage equations of SPARK and in the index-1
 accelerations of Baumgarte's method. Dense Cholesky of ``S`` costs ``O(m^3)`` and forming
 ``G`` densely ``O(m n)`` memory; the constraints of a chain, a truss or a ring of bars touch a
-handful of coordinates each, so ``G`` has ``O(m)`` entries and ``S`` is sparse. Three
+handful of coordinates each, so ``G`` has ``O(m)`` entries and ``S`` is sparse. Four
 solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
 ``solve(factor, r)``):
 
 ``dense``
     ``G`` by forward-mode autodiff, ``S`` formed and factorised by Cholesky: one compiled
     kernel, the fastest path for small systems (and the only one for a configuration-
-    dependent or non-diagonal mass).
+    dependent mass given as a matrix function).
 ``banded`` (:mod:`linalg.banded`)
     ``G``'s values by compressed autodiff (a function of ``(q, t)`` the caller supplies),
     ``S`` assembled by gathers in a bandwidth-reducing order (reverse Cuthill-McKee) and
@@ -32,10 +32,18 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
     pivoting off the diagonal since ``S`` is positive definite), reached from the compiled
     loop by a callback. The factor of the last ``S`` is kept, so the solves of one step with
     the same ``G`` factorise once.
+``kkt`` (:mod:`linalg.kkt`)
+    For a constant mass that is not diagonal (natural coordinates), whose ``M^{-1}``, and so
+    ``S``, is dense: solves with ``S`` are the multiplier block of solves with the augmented
+    system ``[[M, G^T], [G, 0]]``, factorised ``L D L^T`` as a band in JAX (constraints
+    ordered after their coordinates), ``O((n + m) w^2)``.
 
-:func:`choose` picks by structure: ``dense`` for at most :data:`DENSE_MAX` constraints or a
-mass that is not a constant diagonal; otherwise ``banded`` when the bandwidth of the core
-after reordering is at most :data:`linalg.banded.BAND_MAX`, else ``superlu``.
+:func:`choose` picks by structure. A constant mass that is not diagonal: ``kkt`` above
+:data:`DENSE_KKT_MAX` constraints when the augmented system's band is at most
+:data:`linalg.kkt.KKT_BAND_MAX` wide, else ``dense``. Otherwise ``dense`` for at most
+:data:`DENSE_MAX` constraints or a mass that is not a constant diagonal; else ``banded``
+when the bandwidth of the core after reordering is at most
+:data:`linalg.banded.BAND_MAX`, else ``superlu``.
 
 Redundant constraints follow one policy on every path, the basic solution
 (:mod:`linalg.dense`).
@@ -48,8 +56,11 @@ from typing import Callable
 import jax
 import numpy as np
 
+import scipy.sparse as sp
+
 from linalg.banded import BAND_MAX, Banded
 from linalg.dense import Schur
+from linalg.kkt import KKT, KKT_BAND_MAX
 from linalg.pattern import Pattern
 from linalg.sparse import SuperLU
 
@@ -57,8 +68,18 @@ from linalg.sparse import SuperLU
 #: chain (``python -m benchmarks.perf.scaling``): dense is faster below about this size.
 DENSE_MAX = 8
 
+#: Largest number of constraints solved densely by default where the mass is constant but
+#: not diagonal. Measured with ``python -m benchmarks.perf.four_bar --crossover`` (rattle,
+#: 1000 steps of four-bar:N, load 4.7 on 2 cores): ``kkt`` is faster at every size (N = 2:
+#: 0.017 against 0.021 ms per step; N = 16: 0.059 against 0.117), but its simplified Newton
+#: (the Schur complement frozen at the step's start) leaves ``|g|`` at up to a thousand times
+#: Newton's tolerance across the singular configurations (2.6e-11 against 2.1e-14 at N =
+#: 16), where the dense path's exact Newton reaches round-off. Dense is kept while its step
+#: is cheap, under a millisecond (four-bar up to N = 63, bricard).
+DENSE_KKT_MAX = 128
+
 #: Names a run may ask for.
-KINDS = ("auto", "dense", "banded", "superlu")
+KINDS = ("auto", "dense", "banded", "superlu", "kkt")
 
 
 def choose(kind: str, shape: tuple[int, int],
@@ -66,12 +87,13 @@ def choose(kind: str, shape: tuple[int, int],
            solve_mass: Callable[[jax.Array, jax.Array], jax.Array],
            mass_diagonal: np.ndarray | None = None,
            sparsity: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-           G_values: Callable[[jax.Array, jax.Array], jax.Array] | None = None) -> Schur:
+           G_values: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
+           mass_matrix: sp.spmatrix | None = None) -> Schur:
     """The solver for ``S = G M^{-1} G^T``: ``kind`` or, for ``"auto"``, by structure.
 
     Parameters
     ----------
-    kind : {"auto", "dense", "banded", "superlu"}
+    kind : {"auto", "dense", "banded", "superlu", "kkt"}
         The solver, or ``"auto"`` to choose by structure (module notes).
     shape : (int, int)
         ``(m, n)``: constraints and coordinates.
@@ -86,21 +108,39 @@ def choose(kind: str, shape: tuple[int, int],
         structured solver may be chosen (tracing the pattern costs set-up time).
     G_values : callable, optional
         ``G_values(q, t) -> (nnz,)``: ``G``'s entries in the order of ``sparsity``.
+    mass_matrix : scipy.sparse matrix, optional
+        A constant mass that is not diagonal; the ``kkt`` solver needs it (or
+        ``mass_diagonal``).
 
     Raises
     ------
     ValueError
-        For an unknown ``kind``, or a structured one on a system whose mass is not a
-        constant diagonal (the structured solvers assemble ``S`` with ``M^{-1}`` diagonal).
+        For an unknown ``kind``; ``banded`` or ``superlu`` on a system whose mass is not a
+        constant diagonal (they assemble ``S`` with ``M^{-1}`` diagonal); ``kkt`` on one
+        whose mass is not constant, or whose augmented system is too wide a band.
     """
     if kind not in KINDS:
         raise ValueError(f"linear_solver = {kind!r}: expected one of {', '.join(KINDS)}")
     diagonal = mass_diagonal is not None
+    if kind == "kkt" or (kind == "auto" and mass_matrix is not None
+                         and shape[0] > DENSE_KKT_MAX):
+        if mass_matrix is None and not diagonal:
+            raise ValueError("linear_solver = 'kkt' needs a constant mass; this system's "
+                             "mass is not one (use dense)")
+        M = mass_matrix if mass_matrix is not None else sp.diags(mass_diagonal)
+        solver = KKT(M, *sparsity(), shape, G_values)
+        if solver.bandwidth <= KKT_BAND_MAX:
+            return solver
+        if kind == "kkt":
+            raise ValueError(f"linear_solver = 'kkt': the augmented system's bandwidth "
+                             f"{solver.bandwidth} exceeds {KKT_BAND_MAX} (use dense)")
+        return Schur(G, solve_mass)
     if kind == "dense" or (kind == "auto" and (shape[0] <= DENSE_MAX or not diagonal)):
         return Schur(G, solve_mass)
     if not diagonal:
         raise ValueError(f"linear_solver = {kind!r} needs a constant diagonal mass; "
-                         "this system's mass is not one (use dense)")
+                         "this system's mass is not one (use dense"
+                         + (" or kkt)" if mass_matrix is not None else ")"))
     pattern = Pattern(*sparsity(), shape)
     if kind == "banded" or (kind == "auto" and pattern.bandwidth <= BAND_MAX):
         if pattern.bandwidth > 4 * BAND_MAX and kind == "banded":

@@ -38,9 +38,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
 
 from linalg.blocks import Blocks  # noqa: E402
-from linalg.schur import choose  # noqa: E402
+from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
+from linalg.schur import DENSE_KKT_MAX, choose  # noqa: E402
 
 Array = jax.Array
 
@@ -53,9 +55,10 @@ class System:
     ----------
     n, m : int
         Number of coordinates and of constraints.
-    mass : callable or array_like or None
-        ``mass(q) -> (n, n)``, or a constant ``(n, n)`` matrix, or a constant diagonal
-        ``(n,)``. Symmetric positive definite. ``None`` when ``kinetic`` gives it.
+    mass : callable or array_like or scipy.sparse matrix or None
+        ``mass(q) -> (n, n)``, or a constant ``(n, n)`` matrix (dense or, for large
+        systems, a scipy sparse matrix, so that it is never formed densely), or a constant
+        diagonal ``(n,)``. Symmetric positive definite. ``None`` when ``kinetic`` gives it.
     constraints : callable
         ``g(q, t) -> (m,)``, holonomic; may depend on ``t`` (then set ``rheonomic``).
     potential : callable, optional
@@ -112,17 +115,35 @@ class Mechanics:
         #: The constant diagonal of ``M`` when it is one (``None`` otherwise): such a mass is
         #: never formed as a matrix, so that its cost and memory stay ``O(n)``.
         self.mass_diagonal = None
+        #: A constant mass that is not diagonal, as a scipy sparse matrix (``None`` for
+        #: any other mass): the ``kkt`` solver works with it (:mod:`linalg.kkt`).
+        self.mass_matrix = None
+        #: Its banded factor where the system is large (more than
+        #: :data:`linalg.schur.DENSE_KKT_MAX` constraints, where the linear algebra is
+        #: chosen structured) and ``M`` a band of at most :data:`linalg.kkt.KKT_BAND_MAX`
+        #: after reordering: ``M x`` and ``M^{-1} x`` then cost ``O(n)``, not ``O(n^2)``.
+        self.mass_band = None
         if self.constant_mass:
-            mass = np.asarray(system.mass, dtype=np.float64)
+            mass = system.mass
+            mass = (sp.csr_matrix(mass, dtype=np.float64) if sp.issparse(mass)
+                    else np.asarray(mass, dtype=np.float64))
             if mass.ndim == 1 and mass.shape != (self.n,):
                 raise ValueError(f"mass has shape {mass.shape}, expected ({self.n},)")
             if mass.ndim == 2 and mass.shape != (self.n, self.n):
                 raise ValueError(f"mass has shape {mass.shape}, expected ({self.n}, {self.n})")
-            if mass.ndim == 1 or not np.any(mass - np.diag(np.diag(mass))):
-                self.mass_diagonal = mass if mass.ndim == 1 else np.diag(mass).copy()
+            diagonal = mass.ndim == 1 or not (
+                (mass - sp.diags(mass.diagonal())).count_nonzero() if sp.issparse(mass)
+                else np.any(mass - np.diag(np.diag(mass))))
+            if diagonal:
+                self.mass_diagonal = mass if mass.ndim == 1 else np.asarray(mass.diagonal()).copy()
             else:
-                self._M = jnp.asarray(mass)
-                self._Minv = jnp.asarray(np.linalg.inv(mass))
+                self.mass_matrix = sp.csr_matrix(mass)
+                if self.m > DENSE_KKT_MAX and rcm(self.mass_matrix)[2] <= KKT_BAND_MAX:
+                    self.mass_band = BandedMass(self.mass_matrix)
+                else:
+                    dense = mass.toarray() if sp.issparse(mass) else mass
+                    self._M = jnp.asarray(dense)
+                    self._Minv = jnp.asarray(np.linalg.inv(dense))
         # Energy is conserved only for a scleronomic system without applied forces.
         self.has_energy = system.forces is None and not system.rheonomic
         self.separable = self.constant_mass and system.forces is None
@@ -153,7 +174,7 @@ class Mechanics:
         """Mass matrix ``M(q)`` (dense; :meth:`mass_times` avoids forming it)."""
         if self.mass_diagonal is not None:
             return jnp.diag(jnp.asarray(self.mass_diagonal))
-        if self.kinetic is not None:
+        if self.kinetic is not None or self.mass_band is not None:
             return jax.jacfwd(lambda v: self.mass_times(q, v))(jnp.zeros(self.n))
         return self._M if self.constant_mass else self.system.mass(q)
 
@@ -162,6 +183,8 @@ class Mechanics:
         if self.mass_diagonal is not None:
             d = jnp.asarray(self.mass_diagonal)
             return (d[:, None] if x.ndim == 2 else d) * x
+        if self.mass_band is not None:
+            return self.mass_band.times(x)
         if self.kinetic is not None:
             # T is quadratic in v: its gradient in v at x is M(q) x.
             Mx = jax.grad(self.kinetic, argnums=1)
@@ -173,6 +196,8 @@ class Mechanics:
         if self.mass_diagonal is not None:
             d = jnp.asarray(self.mass_diagonal)
             return b / (d[:, None] if b.ndim == 2 else d)
+        if self.mass_band is not None:
+            return self.mass_band.solve(b)
         if self.constant_mass:
             return self._Minv @ b
         if self.mass_blocks is not None:
@@ -310,7 +335,8 @@ class Mechanics:
         """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`), built once.
 
         A block-diagonal mass reaches the structured solvers whitened: ``G L^{-T}`` with a
-        unit mass (:meth:`whitened_values`)."""
+        unit mass (:meth:`whitened_values`); a constant one that is not diagonal, the
+        augmented system (:mod:`linalg.kkt`)."""
         cache = self.__dict__.setdefault("_schur", {})
         if kind not in cache:
             if self.mass_blocks is not None:
@@ -321,12 +347,15 @@ class Mechanics:
                                      np.ones(self.n), whitened_pattern, self.whitened_values)
             else:
                 cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
-                                     self.mass_diagonal, self.G_pattern, self.G_values)
+                                     self.mass_diagonal, self.G_pattern, self.G_values,
+                                     self.mass_matrix)
         return cache[kind]
 
     def gram(self, kind: str = "auto"):
         """The solver for the Gram matrix ``G G^T`` (a unit mass; the stabilised index-2
-        forms move ``q`` along ``G^T mu``), built once, of the kind :meth:`schur` uses."""
+        forms move ``q`` along ``G^T mu``), built once, of the kind :meth:`schur` uses
+        (chosen by structure where that is ``kkt``: the unit mass is diagonal)."""
+        kind = "auto" if kind == "kkt" else kind
         cache = self.__dict__.setdefault("_gram", {})
         if kind not in cache:
             cache[kind] = choose(kind, (self.m, self.n), self.G, lambda q, b: b,
