@@ -18,6 +18,7 @@ import traceback
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 
 import problems
 from benchmarks.records import one_line
@@ -108,6 +109,11 @@ def audit(case) -> None:
     elif callable(s.mass):
         M = _check(case, "mass(q)", s.mass, lambda: s.mass(q), (n, n))
         _check(case, "d mass / dq (autodiff)", s.mass, lambda: jax.jacfwd(s.mass)(q), (n, n, n))
+    elif sp.issparse(s.mass):
+        if s.mass.shape != (n, n) or not np.all(np.isfinite(s.mass.data)):
+            raise _refuse(case, f"mass of problem {case.name!r} has shape {s.mass.shape}, not "
+                                f"({n}, {n}), or is not finite")
+        M = s.mass.toarray() if n <= DENSE_AUDIT_MAX else None
     else:
         M = np.asarray(s.mass, dtype=np.float64)
         M = np.diag(M) if M.ndim == 1 else M

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 
 import integrators
 from integrators.base import Integrator
@@ -62,6 +63,10 @@ integrators.register("{key}", f"{{__name__}}:Euler")
 PROBLEMS = [
     ("constant-mass-not-positive-definite", {"mass": "np.array([1.0, -1.0])"}, "@register",
      ["mass of problem", "not positive definite"]),
+    ("sparse-mass-not-positive-definite", {"mass": "sp.diags([1.0, -1.0])"}, "@register",
+     ["mass of problem", "not positive definite"]),
+    ("sparse-mass-not-finite", {"mass": "sp.diags([1.0, np.nan])"}, "@register",
+     ["mass of problem", "not finite"]),
     # Found when the case derives its mechanics, from the call that makes the case.
     ("constant-mass-wrong-shape", {"mass": "np.ones(3)"}, "return make_case",
      ["mass has shape (3,)"]),
