@@ -128,15 +128,19 @@ FAMILIES = ["rattle", "lobatto3ab2", "lobatto3ab3", "lobatto3ab4", "genalpha", "
             "hht", "baumgarte-rk4"]
 
 
-@pytest.mark.parametrize("spec, h, t_end", [("four-bar:N=4", 1e-3, 0.05), ("bricard", 1e-3, 0.05)])
-@pytest.mark.parametrize("key", [
-    pytest.param(family, marks=pytest.mark.slow) for family in FAMILIES])
-def test_every_fixed_step_family_gives_the_dense_result_on_the_kkt_path(spec, h, t_end, key):
+# On bricard the index-3 generalized-alpha Newton diverges on the dense path too (the
+# library suite's expected failure): genalpha and hht are compared on four-bar only.
+@pytest.mark.slow
+@pytest.mark.parametrize("spec, key", [
+    (spec, family) for spec in ("four-bar:N=4", "bricard") for family in FAMILIES
+    if not (spec == "bricard" and family in ("genalpha", "hht"))])
+def test_every_fixed_step_family_gives_the_dense_result_on_the_kkt_path(spec, key):
     # The same equations solved to round-off by two linear algebras (bricard with its
-    # redundant constraint on both). Measured over these 50 steps: the paths agree to
-    # 1e-14 or better in q and v.
-    _, dense = solve(spec, f"{key}:linear_solver=dense", t_end, h=h)
-    _, kkt = solve(spec, f"{key}:linear_solver=kkt", t_end, h=h)
+    # redundant constraint on both), over 50 steps of h = 1e-3. Measured: q agree to 2e-15,
+    # v to 2e-14 but for index-3 genalpha and hht on four-bar (3.7e-12 and 7.4e-13: their
+    # velocities carry the positions' round-off divided by h).
+    _, dense = solve(spec, f"{key}:linear_solver=dense", 0.05, h=1e-3)
+    _, kkt = solve(spec, f"{key}:linear_solver=kkt", 0.05, h=1e-3)
     assert dense.linear_solver == "dense" and kkt.linear_solver == "kkt"
     assert kkt.pattern_nnz > 0
     assert np.max(np.abs(kkt.q_final - dense.q_final)) <= 1e-12
