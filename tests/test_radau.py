@@ -191,6 +191,13 @@ def test_options_are_checked():
 
 
 @pytest.mark.slow
+def test_redundant_constraints_are_refused():
+    traj, _ = run("radau5", problems.make("bricard"), rtol=1e-6)
+    assert traj.status == Status.FAILED and traj.counts["n_steps"] == 0
+    assert traj.message.startswith("G(q0) has rank 23 < m = 24"), traj.message
+
+
+@pytest.mark.slow
 def test_andrews_reaches_the_reference():
     """Andrews' mechanism at rtol 1e-10. The stabilised form reaches the reference within
     its floor (measured 1.43e-9, the floor 2e-9). The index-3 form ends at 2.0e-8 (scd
