@@ -29,9 +29,10 @@ from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
 from benchmarks.plan import PlannedRun, plan
-from benchmarks.records import (Ending, Metrics, Record, RunSpec, Status, Timing, Work,
-                                provenance)
+from benchmarks.records import (QUANTILES, Ending, Metrics, Record, RunSpec, Spread, Status,
+                                Timing, Work, provenance)
 from integrators.base import COUNTERS, Grid, Trajectory
+from problems import ensemble
 from problems.spec import ProblemSpec
 
 
@@ -42,9 +43,17 @@ def _case(problem: ProblemSpec):
     return problems.make(problem)
 
 
+@functools.lru_cache(maxsize=4)
+def _lanes(problem: ProblemSpec, lanes: int, seed: int):
+    # The initial states of an ensemble depend on the case alone: every method and step of
+    # a worker's sweep starts from the same ones.
+    return ensemble.draw(_case(problem), lanes, seed)
+
+
 def forget_cases() -> None:
     """Drop the cases this process keeps (a problem's definition was replaced)."""
     _case.cache_clear()
+    _lanes.cache_clear()
 
 
 #: Autorange timing (in the manner of :func:`timeit.Timer.autorange`): a run's solve is
@@ -99,10 +108,15 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
             case = case.with_t_end(run.horizon)
         integ = integrators.make(run.integrator)
         grid = Grid(case.t0, case.t_end, **dict(run.grid))
+        lanes = None
+        if run.run.lanes is not None:
+            phase("drawing the ensemble's initial states")
+            lanes = _lanes(run.problem, run.run.lanes, run.run.seed)
         phase("set-up")
         start = time.perf_counter()
         with compilation.Watch() as compiled:
-            solve = integ.prepare(case, grid)
+            solve = (integ.prepare(case, grid) if lanes is None else
+                     integ.prepare_ensemble(case, grid, *lanes))
         timing = Timing(setup_s=time.perf_counter() - start, setup_cache=compiled.source)
         times: list[float] = []
         while True:
@@ -117,9 +131,12 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
             if deadline is not None and time.monotonic() + 2.0 * times[-1] > deadline:
                 break
         phase("measuring")
+        extra = (traj if lanes is None else traj[0]).extra
         timing = replace(timing, wall_s=statistics.median(times), repeats=len(times),
                          wall_min_s=min(times), wall_max_s=max(times),
-                         callback_s=_given(traj.extra.get("callback_s")))
+                         callback_s=_given(extra.get("callback_s")))
+        if lanes is not None:
+            return measure_ensemble(run, case, traj, timing)
         return measure(run, case, traj, timing)
     except Exception as exc:  # a defect in the method or the user's functions
         return Record(run.run, Ending(Status.ERROR, explain(exc)), timing)
@@ -184,4 +201,86 @@ def measure(run: PlannedRun, case, traj: Trajectory, timing: Timing) -> Record:
     measured = {f.name: metrics.get(f.name) for f in fields(Metrics)}
     measured.update(invariant_errors=json.dumps(inv) if inv else "", **growth(case, traj))
     return Record(run.run, ending, timing, work, Metrics(**measured),
-                  traj.windows, traj.samples)
+                  windows=traj.windows, samples=traj.samples)
+
+
+#: The per-lane metrics of an ensemble, by :func:`benchmarks.metrics.summarize` name, and
+#: their names in the :class:`~benchmarks.records.Spread` columns.
+LANE_METRICS = {"max_pos_residual": "pos", "max_vel_residual": "vel",
+                "rel_energy_error": "energy"}
+
+
+def measure_ensemble(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing) -> Record:
+    """The record of an ensemble from its lanes' trajectories.
+
+    Per lane (:attr:`Record.lanes`): its seed index, its :class:`~integrators.base.Status`
+    as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize` and its work
+    counters. Lane 0 starts from the case's own initial values, so it alone has the case's
+    reference: its final error and scd are the record's, and the other lanes' are NaN. The
+    record's metrics are the worst lane's (the maxima over the lanes that finished), its
+    work the sum over lanes (the work the timed solve did), its drift series the per-window
+    maxima over the lanes (with their medians beside them as ``median:NAME``), its final
+    state and samples lane 0's, and its :class:`~benchmarks.records.Spread` the quantiles
+    over the lanes that finished. The ensemble is ``ok`` when every lane is; otherwise
+    ``failed``, its message counting the failed lanes and quoting the first.
+    """
+    bare = case.with_initial(case.q0, case.v0)  # the lanes but 0 have no reference
+    rows = [summarize(case if i == 0 else bare, traj) for i, traj in enumerate(trajs)]
+    ok = np.array([traj.status == Status.OK for traj in trajs])
+    table = {"seed": np.arange(len(trajs), dtype=float), "status": (~ok).astype(float)}
+    for name in ("max_pos_residual", "max_vel_residual", "rel_energy_error",
+                 "final_state_error"):
+        table[name] = np.array([row[name] for row in rows], dtype=float)
+    table["t_final"] = np.array([traj.t_final for traj in trajs], dtype=float)
+    for key in COUNTERS:
+        table[key] = np.array([traj.counts.get(key, 0) for traj in trajs], dtype=float)
+
+    nominal = measure(run, case, trajs[0], timing)
+    windows = _envelope(trajs)
+    worst = {name: _given(np.nanmax(table[name][ok])) if ok.any() else None
+             for name in LANE_METRICS}
+    inv = {}
+    for name in (k for k in rows[0] if k.startswith("max_inv:")):
+        values = [row[name] for row, good in zip(rows, ok) if good]
+        inv[name[len("max_inv:"):]] = _given(np.nanmax(values)) if values else None
+    max_energy = _given(np.nanmax([row["max_energy_error"] for row in rows])) \
+        if ok.any() and case.mech.has_energy else None
+    metrics = replace(nominal.metrics, **worst, max_energy_error=max_energy,
+                      invariant_errors=json.dumps(inv) if inv else "",
+                      **growth(case, Trajectory(Status.OK, "", 0.0, None, None, windows,
+                                                {}, {})))
+    spread = {"failed_fraction": float(np.mean(~ok))}
+    for name, short in LANE_METRICS.items():
+        values = table[name][ok]
+        for q in QUANTILES:
+            spread[f"{short}_q{q}"] = (_given(np.nanpercentile(values, q))
+                                       if len(values) and not np.isnan(values).all() else None)
+    failed = np.flatnonzero(~ok)
+    ending = nominal.ending
+    if len(failed):
+        first = trajs[failed[0]]
+        ending = replace(ending, status=Status.FAILED, fail_step=_given(first.fail_step),
+                         fail_time=_given(first.fail_time),
+                         message=f"{len(failed)} of {len(trajs)} lanes failed; the first, "
+                                 f"lane {failed[0]}: {first.message}")
+    work = replace(nominal.work, **{key: int(table[key].sum()) for key in COUNTERS})
+    return Record(run.run, ending, timing, work, metrics, Spread(**spread), windows=windows,
+                  samples=trajs[0].samples, lanes=table)
+
+
+def _envelope(trajs: list[Trajectory]) -> dict[str, np.ndarray]:
+    """Per-window maxima over the lanes (and medians, ``median:NAME``) of the windowed
+    series; a window is kept where some lane reached it, its end time the longest lane's."""
+    longest = max(trajs, key=lambda traj: len(traj.windows["t"]))
+    width = len(longest.windows["t"])
+    out = {"t": np.asarray(longest.windows["t"], dtype=float)}
+    for name in longest.windows:
+        if name == "t":
+            continue
+        stack = np.full((len(trajs), width), np.nan)
+        for i, traj in enumerate(trajs):
+            series = np.asarray(traj.windows[name], dtype=float)
+            stack[i, :len(series)] = series
+        out[name] = np.nanmax(stack, axis=0)
+        out[f"median:{name}"] = np.nanmedian(stack, axis=0)
+    return out

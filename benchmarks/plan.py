@@ -31,6 +31,7 @@ import integrators
 import problems
 from benchmarks.audit import AuditError, audit, explain
 from benchmarks.records import InputError, Run, RunSpec, identity, one_line, run_key
+from problems.ensemble import MAX_LANES
 from problems.spec import IntegratorSpec, ProblemSpec, SpecError
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
@@ -71,12 +72,12 @@ class PlannedRun:
 
 
 def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=None,
-           timeout=None, origin="") -> list[RunSpec]:
+           timeout=None, origin="", lanes=None, seed=None) -> list[RunSpec]:
     """Every combination: ``hs`` go to fixed-step methods, ``rtols x atols`` to adaptive ones.
 
     Each spec string is resolved here, once (:func:`problems.resolve`,
     :func:`integrators.resolve`); an empty list leaves the method's own default for that
-    setting.
+    setting. ``lanes`` (and ``seed``, default 0) make every run an ensemble.
 
     Raises
     ------
@@ -85,15 +86,32 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     """
     resolved = [problems.resolve(p, origin) for p in problem_specs]
     methods = [integrators.resolve(i, origin) for i in integrator_specs]
+    ensemble = (None, None) if lanes is None else (int(lanes), int(seed or 0))
     runs = []
     for p, i in itertools.product(resolved, methods):
         if integrators.cls_of(i.name).adaptive:
             for rtol, atol in itertools.product(rtols or [None], atols or [None]):
-                runs.append(RunSpec(p, i, None, rtol, atol, t_end, timeout, origin))
+                runs.append(RunSpec(p, i, None, rtol, atol, t_end, timeout, origin,
+                                    *ensemble))
         else:
-            runs.extend(RunSpec(p, i, h, None, None, t_end, timeout, origin)
+            runs.extend(RunSpec(p, i, h, None, None, t_end, timeout, origin, *ensemble)
                         for h in (hs or [None]))
     return runs
+
+
+#: The recording grid of each lane of an ensemble: the loop keeps these per lane, so they are
+#: what bounds its memory (a few kilobytes per lane); the windows are enough for the drift
+#: classes, and the samples are the initial, middle and final states.
+ENSEMBLE_GRID = {"n_windows": 64, "n_samples": 3}
+
+
+def check_ensemble(lanes, seed, where: str) -> None:
+    """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes and a seed >= 0."""
+    if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= MAX_LANES:
+        raise InputError(f"{where}: ensemble = {lanes!r} must be a whole number of lanes "
+                         f"from 1 to {MAX_LANES}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InputError(f"{where}: seed = {seed!r} must be a whole number >= 0")
 
 
 def check_timeout(value, where: str) -> None:
@@ -129,12 +147,16 @@ def known(problem: ProblemSpec, integrator: IntegratorSpec, case, integ, asked: 
     resolved = {"problem": problem.name, "arguments": problem.kwargs,
                 "params": dict(case.params), "integrator": integrator.name, "options": opts,
                 "t_end": case.t_end, "grid": grid}
+    if asked.lanes is not None:
+        resolved["ensemble"] = [asked.lanes, asked.seed]
     return Run(problem=str(asked.problem), integrator=str(asked.integrator), h=opts.get("h"),
                rtol=opts.get("rtol"), atol=opts.get("atol"), t_end=case.t_end,
                options=json.dumps(opts, default=str),
                params=json.dumps(case.params, default=str), run_key=run_key(resolved, version),
                t0=case.t0, energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
-               sensitive=int(bool(case.system.sensitive)), family=integ.family)
+               sensitive=int(bool(case.system.sensitive)), family=integ.family,
+               **({} if asked.lanes is None else
+                  dict(lanes=asked.lanes, seed=asked.seed, batched=int(integ.batched))))
 
 
 def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = None,
@@ -193,13 +215,18 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
                                               case.with_t_end(spec.t_end))
             case = cases[problem, spec.t_end]
             integ = integrators.make(method, h=spec.h, rtol=spec.rtol, atol=spec.atol)
-            run = known(problem, method, case, integ, spec, grid, version)
+            run_grid = grid
+            if spec.lanes is not None:
+                check_ensemble(spec.lanes, spec.seed, spec.label())
+                run_grid = {**grid, **{k: min(v, grid.get(k, v))
+                                       for k, v in ENSEMBLE_GRID.items()}}
+            run = known(problem, method, case, integ, spec, run_grid, version)
             _check_steps(run, int(case.q0.size), spec.label(), allow_large, notes)
             limit = spec.timeout if spec.timeout is not None else timeout
             out.append(PlannedRun(problem, IntegratorSpec(method.name,
                                                           tuple(integ.options().items()),
                                                           method.text, method.origin),
-                                  spec.t_end, tuple(grid.items()),
+                                  spec.t_end, tuple(run_grid.items()),
                                   None if math.isinf(limit) else float(limit), run,
                                   spec.origin))
         except (InputError, AuditError, SpecError) as exc:

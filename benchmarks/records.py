@@ -3,7 +3,8 @@
 - :class:`RunSpec`: one run as asked for (problem spec, integrator spec, setting, horizon);
 - :class:`Record`: one run as it ended, complete, in named parts: what ran (:class:`Run`,
   known before it starts), how it ended (:class:`Ending`), its :class:`Timing`,
-  :class:`Work` and :class:`Metrics`, its drift series and its sampled states. Everything
+  :class:`Work` and :class:`Metrics` (and an ensemble's :class:`Spread` and per-lane
+  table), its drift series and its sampled states. Everything
   a later stage needs to know about a run (nominal order, sensitivity, energy scale,
   ``t0``, the linear solver, the sampling, the drift classes) is in it, filled where the
   run happens, so that the store and the reports never rebuild a problem or an
@@ -50,6 +51,8 @@ COLUMNS = (
     "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
     "energy_growth", "reference_floor", "family", "setup_cache",
+    "lanes", "seed", "batched", "failed_fraction", *(
+        f"{metric}_q{q}" for metric in ("pos", "vel", "energy") for q in (0, 50, 90, 100)),
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -59,7 +62,8 @@ ACCURACY_COLUMNS = (
     "n_lin_solves", "max_pos_residual", "max_vel_residual", "max_energy_error",
     "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
     "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
-    "pos_growth", "energy_growth", "reference_floor",
+    "pos_growth", "energy_growth", "reference_floor", "failed_fraction",
+    *(f"{metric}_q{q}" for metric in ("pos", "vel", "energy") for q in (0, 50, 90, 100)),
 )
 
 #: Columns that hold text; every other column holds a number or nothing.
@@ -70,7 +74,7 @@ TEXT_COLUMNS = ("problem", "integrator", "status", "message", "q_final", "v_fina
 #: Columns that hold whole numbers (pandas reads them as floats where some are empty).
 WHOLE_COLUMNS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
                  "n_lin_solves", "fail_step", "repeats", "pattern_nnz", "nominal_order",
-                 "sensitive")
+                 "sensitive", "lanes", "seed", "batched")
 
 #: Environment variable that pins the code version (see :func:`provenance`).
 CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
@@ -141,13 +145,16 @@ def identity(row) -> str:
     ``row`` is anything with ``get`` (a ``runs.csv`` row, a stored row as pandas gives it,
     where a missing value is NaN) or a :class:`RunSpec`. Runs of the same identity are the
     same experiment, whatever commit or engine ran them: the drift gate matches runs to its
-    baseline by it and the report shows the latest run of each.
+    baseline by it and the report shows the latest run of each. An ensemble's identity ends
+    with its size and seed.
     """
     get = row.get if hasattr(row, "get") else lambda k: getattr(row, k, None)
     t_end = get("t_end")
     horizon = "t_end=default" if _missing(t_end) else f"t_end={number(t_end)}"
+    lanes = get("lanes")
+    ensemble = "" if _missing(lanes) else f" / ensemble={int(lanes)},seed={int(get('seed'))}"
     return (f"{get('problem')} / {get('integrator')} / "
-            f"{setting(get('h'), get('rtol'), get('atol'))} / {horizon}")
+            f"{setting(get('h'), get('rtol'), get('atol'))} / {horizon}{ensemble}")
 
 
 @dataclass(frozen=True)
@@ -159,7 +166,8 @@ class RunSpec:
     :class:`~problems.spec.ProblemSpec` and :class:`~problems.spec.IntegratorSpec`.
     ``timeout`` is the run's time limit in seconds (``None``: the batch default); ``origin``
     says where the run was asked for (a suite file and line), for error messages. Neither
-    takes part in comparisons.
+    takes part in comparisons. ``lanes`` (``None``: a single run) and ``seed`` ask for an
+    ensemble of that many initial states (:mod:`problems.ensemble`).
     """
 
     problem: object
@@ -170,6 +178,8 @@ class RunSpec:
     t_end: float | None = None
     timeout: float | None = field(default=None, compare=False)
     origin: str = field(default="", compare=False)
+    lanes: int | None = None
+    seed: int | None = None
 
     def label(self) -> str:
         """The run's :func:`identity`, for progress lines and messages."""
@@ -183,7 +193,9 @@ class Run:
     ``problem`` and ``integrator`` are the specs as written; ``h``, ``rtol``, ``atol`` the
     integrator's resolved options (``None`` where it has none) and ``t_end`` the resolved
     horizon; ``options`` and ``params`` JSON of every option and physical parameter; then
-    what the case and the method declare, and the ``run_key`` (:func:`run_key`).
+    what the case and the method declare, and the ``run_key`` (:func:`run_key`); for an
+    ensemble its number of ``lanes``, its ``seed`` and whether they ran in one compiled loop
+    (``batched`` 1) or one after another (0).
     """
 
     problem: str
@@ -200,6 +212,9 @@ class Run:
     nominal_order: int | None = None
     sensitive: int | None = None
     family: str | None = None
+    lanes: int | None = None
+    seed: int | None = None
+    batched: int | None = None
 
 
 @dataclass(frozen=True)
@@ -267,15 +282,45 @@ class Metrics:
     reference_floor: float | None = None
 
 
+#: The quantiles (in percent) of an ensemble's distributions in ``runs.csv``.
+QUANTILES = (0, 50, 90, 100)
+
+
+@dataclass(frozen=True)
+class Spread:
+    """An ensemble's distributions over its lanes: the fraction of lanes that failed and the
+    quantiles :data:`QUANTILES` of each lane's ``max |g|`` (``pos_q...``), ``max |G v +
+    g_t|`` (``vel_q...``) and relative energy error (``energy_q...``), over the lanes that
+    finished (all ``None`` for a single run). The per-lane values are the record's
+    :attr:`Record.lanes`."""
+
+    failed_fraction: float | None = None
+    pos_q0: float | None = None
+    pos_q50: float | None = None
+    pos_q90: float | None = None
+    pos_q100: float | None = None
+    vel_q0: float | None = None
+    vel_q50: float | None = None
+    vel_q90: float | None = None
+    vel_q100: float | None = None
+    energy_q0: float | None = None
+    energy_q50: float | None = None
+    energy_q90: float | None = None
+    energy_q100: float | None = None
+
+
 #: The parts of a record, by field name of :class:`Record`: each column of :data:`COLUMNS`
 #: is a field of one of them.
-PARTS = {"run": Run, "ending": Ending, "timing": Timing, "work": Work, "metrics": Metrics}
+PARTS = {"run": Run, "ending": Ending, "timing": Timing, "work": Work, "metrics": Metrics,
+         "spread": Spread}
 
 
 @dataclass(frozen=True)
 class Record:
     """A finished run, complete: what ran, how it ended, its timing, work and metrics, its
-    drift series and its sampled states. Missing values are ``None``.
+    drift series and its sampled states; for an ensemble, its :class:`Spread` and the
+    per-lane table ``lanes`` (name -> one value per lane: the lane's ``seed`` index,
+    ``status`` code, metrics and counters). Missing values are ``None``.
 
     :attr:`row` is its ``runs.csv`` row, the one conversion that the store and
     ``runs.csv`` both use; :meth:`from_row` reads a stored row back.
@@ -286,8 +331,10 @@ class Record:
     timing: Timing = Timing()
     work: Work = Work()
     metrics: Metrics = Metrics()
+    spread: Spread = Spread()
     windows: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
     samples: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    lanes: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
 
     @property
     def row(self) -> dict:
@@ -298,7 +345,7 @@ class Record:
         return {c: values[c] for c in COLUMNS}
 
     @classmethod
-    def from_row(cls, row, windows=None, samples=None) -> "Record":
+    def from_row(cls, row, windows=None, samples=None, lanes=None) -> "Record":
         """The record of a ``runs.csv`` or stored row (a mapping; absent columns are
         ``None``)."""
         parts = {name: part(**{f.name: row.get(f.name) for f in fields(part)})
@@ -306,7 +353,8 @@ class Record:
         status = parts["ending"].status
         parts["ending"] = replace(parts["ending"],
                                   status=None if status is None else Status(status))
-        return cls(**parts, windows=dict(windows or {}), samples=dict(samples or {}))
+        return cls(**parts, windows=dict(windows or {}), samples=dict(samples or {}),
+                   lanes=dict(lanes or {}))
 
 
 def _plain(value):

@@ -63,6 +63,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rtol", nargs="+", type=float, default=[], help="relative tolerances (adaptive methods)")
     p.add_argument("--atol", nargs="+", type=float, default=[], help="absolute tolerances (adaptive methods)")
     p.add_argument("--t-end", type=float, help="end time (default: each problem's own)")
+    p.add_argument("--ensemble", type=int, metavar="K",
+                   help="run each run from K initial states near the problem's own (lane 0: "
+                        "its own), in one compiled loop where the method allows")
+    p.add_argument("--seed", type=int, help="seed of the ensemble's initial states (default 0)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed solves of each run at least (autorange; the median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
@@ -114,7 +118,8 @@ def listing() -> str:
 #: Command-line numbers: option -> (test of one value, what each value must be); the same
 #: ranges as in suite files, and ``--jobs``.
 ARGUMENT_RANGES = {
-    **{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout", "repeats")},
+    **{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout", "repeats",
+                                           "ensemble", "seed")},
     "jobs": (lambda x: x >= 1, "at least 1"),
 }
 
@@ -145,7 +150,7 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
             raise InputError("an ad-hoc selection needs both --problems and --integrators")
         try:
             runs = expand(args.problems, args.integrators, args.h, args.rtol, args.atol,
-                          args.t_end)
+                          args.t_end, lanes=args.ensemble, seed=args.seed)
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
         return runs, dict(suite="ad-hoc", repeats=args.repeats or 3, timeout=args.timeout,
@@ -156,6 +161,10 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
         runs = [dataclasses.replace(r, t_end=args.t_end) for r in runs]
     if args.timeout is not None:
         runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
+    if args.ensemble is not None or args.seed is not None:
+        runs = [dataclasses.replace(r, lanes=args.ensemble or r.lanes or 1,
+                                    seed=args.seed if args.seed is not None else r.seed or 0)
+                for r in runs]
     # The command line's engine wins over the suite's.
     cluster = args.cluster or (suite.cluster if args.jobs is None else None)
     return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,

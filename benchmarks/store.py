@@ -8,9 +8,10 @@ Schema (version 3):
   (:data:`benchmarks.records.COLUMNS`: the record is complete where the run happens, so
   the store never rebuilds a problem or an integrator), its session and the time it was
   recorded;
-- ``series``: the windowed drift and energy series and sampled states of each run, one row
-  per named array (``window:pos``, ``sample:q``...), stored as raw little-endian float64
-  bytes with the array's shape;
+- ``series``: the windowed drift and energy series and sampled states of each run, and an
+  ensemble's per-lane table (``lane:seed``, ``lane:status``, ``lane:max_pos_residual``...,
+  one value per lane), one row per named array (``window:pos``, ``sample:q``...), stored as
+  raw little-endian float64 bytes with the array's shape;
 - ``artifacts``: tables and SVG figures of study suites that produce no runs, by session,
   report section and name.
 
@@ -56,7 +57,7 @@ import pandas as pd
 from benchmarks.files import new_file_mode
 from benchmarks.records import COLUMNS, TEXT_COLUMNS, WHOLE_COLUMNS, Record, Status, provenance
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 STORE_NAME = "driftbench.sqlite"
 #: Statuses of runs that a resumed suite must run again.
 UNFINISHED = (Status.ERROR, Status.TIMEOUT)
@@ -175,8 +176,19 @@ def _v2_to_v3(db: sqlite3.Connection) -> None:
     db.execute("PRAGMA user_version = 3")
 
 
+def _v3_to_v4(db: sqlite3.Connection) -> None:
+    """Version 3 -> 4: the ensemble columns (``lanes``, ``seed``, ``batched``, the
+    quantiles), empty for the single runs that version 3 held."""
+    have = set(_table_columns(db, "runs"))
+    for column in COLUMNS:
+        if column not in have:
+            db.execute(f'ALTER TABLE runs ADD COLUMN "{column}"')
+    db.execute("PRAGMA user_version = 4")
+
+
 #: version -> the function that upgrades a database of that version by one.
-MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3}
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3,
+                                                                3: _v3_to_v4}
 
 
 def _version(db: sqlite3.Connection) -> int:
@@ -399,6 +411,7 @@ class Store:
             run = cur.lastrowid
             arrays = {f"window:{k}": v for k, v in record.windows.items()}
             arrays.update({f"sample:{k}": v for k, v in record.samples.items()})
+            arrays.update({f"lane:{k}": v for k, v in record.lanes.items()})
             rows = []
             for name, a in arrays.items():
                 a = np.ascontiguousarray(a, dtype="<f8")
@@ -500,10 +513,13 @@ def load_runs(db) -> pd.DataFrame:
 
 
 def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
-    """The arrays of one run: ``{"windows": {...}, "samples": {...}}``.
+    """The arrays of one run: ``{"windows": {...}, "samples": {...}, "lanes": {...}}``.
 
     ``windows`` holds ``t`` (window end times), ``pos``, ``vel``, ``energy`` and
-    ``inv:NAME`` (per-window maxima); ``samples`` holds ``t``, ``q`` and ``v``.
+    ``inv:NAME`` (per-window maxima; for an ensemble, the maxima over its lanes and their
+    medians ``median:NAME``); ``samples`` holds ``t``, ``q`` and ``v``; ``lanes`` an
+    ensemble's per-lane table (:attr:`benchmarks.records.Record.lanes`; empty for a single
+    run), which :func:`load_lanes` gives as a DataFrame.
     """
     con = _reader(db)
     try:
@@ -511,8 +527,8 @@ def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
                            (int(run_id),)).fetchall()
     finally:
         con.close()
-    out: dict[str, dict[str, np.ndarray]] = {"windows": {}, "samples": {}}
-    groups = {"window": "windows", "sample": "samples"}
+    out: dict[str, dict[str, np.ndarray]] = {"windows": {}, "samples": {}, "lanes": {}}
+    groups = {"window": "windows", "sample": "samples", "lane": "lanes"}
     for name, data, shape in rows:
         kind, _, key = name.partition(":")
         array = np.frombuffer(data, dtype="<f8").astype(np.float64)
@@ -520,6 +536,19 @@ def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
             array = array.reshape(json.loads(shape))
         out[groups[kind]][key] = array
     return out
+
+
+def load_lanes(db, run_id: int) -> pd.DataFrame:
+    """An ensemble's per-lane table: one row per lane, columns ``seed`` (the lane's index,
+    which with the run's seed draws its initial state), ``status`` (0 ok, 1 failed), the
+    lane's metrics and work counters. Empty for a single run."""
+    lanes = load_series(db, run_id)["lanes"]
+    frame = pd.DataFrame(lanes)
+    for column in ("seed", "status", "n_steps", "n_rejected", "n_f_evals", "n_jac_evals",
+                   "n_newton", "n_lin_solves"):
+        if column in frame:
+            frame[column] = frame[column].astype("int64")
+    return frame
 
 
 def load_artifacts(db) -> pd.DataFrame:

@@ -18,6 +18,9 @@ tables of runs and ``studies``; each group runs every combination of its lists::
 
 ``h`` applies to fixed-step integrators, ``rtol`` and ``atol`` to adaptive ones. A group's
 ``timeout`` overrides the suite's, and ``--timeout`` on the command line overrides both.
+``ensemble = K`` (and ``seed = S``, default 0) runs each of the group's runs from ``K``
+initial states (:mod:`problems.ensemble`); ``--ensemble`` and ``--seed`` on the command
+line override them for every group.
 
 ``studies = ["flexible-modal"]`` names studies that are not integrator runs: each is a
 function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in
@@ -58,6 +61,7 @@ import integrators
 import problems
 from benchmarks.plan import cluster_address, expand
 from benchmarks.records import InputError, RunSpec
+from problems.ensemble import MAX_LANES
 from problems.spec import SpecError, suggest
 from studies import STUDIES
 
@@ -69,7 +73,8 @@ TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
             "repeats": "a whole number", "timeout": NUMBER, "budget": NUMBER,
             "studies": STRINGS, "cluster": "a string", "load": STRINGS, "targets": NUMBERS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
-              "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER}
+              "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER,
+              "ensemble": "a whole number", "seed": "a whole number"}
 
 
 def _is_number(v) -> bool:
@@ -97,6 +102,8 @@ RANGES = {
     "repeats": (lambda x: x >= 1, "at least 1"),
     "budget": (lambda x: math.isfinite(x) and x > 0, "a positive number of seconds"),
     "targets": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
+    "ensemble": (lambda x: 1 <= x <= MAX_LANES, f"a number of lanes from 1 to {MAX_LANES}"),
+    "seed": (lambda x: x >= 0, "at least 0"),
 }
 
 
@@ -247,7 +254,7 @@ def load(name: str) -> Suite:
                                [float(x) for x in group.get("atol", [])],
                                float(group["t_end"]) if "t_end" in group else None,
                                float(group["timeout"]) if "timeout" in group else None,
-                               origin))
+                               origin, group.get("ensemble"), group.get("seed")))
         except SpecError as exc:
             fail(line_of("integrators"), f"[[group]] {k + 1}: {exc}")
     timeout = float(data["timeout"]) if "timeout" in data else None

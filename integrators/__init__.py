@@ -31,6 +31,8 @@ REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
     "genalpha": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "index3"}),
     "genalpha-ggl": ("integrators.genalpha:GeneralizedAlpha", {"formulation": "ggl"}),
     "hht": ("integrators.genalpha:HHT", {"formulation": "index3"}),
+    "radau5": ("integrators.radau:RadauIIA", {"formulation": "index3"}),
+    "radau5-ggl": ("integrators.radau:RadauIIA", {"formulation": "ggl"}),
 }
 
 

@@ -164,8 +164,23 @@ class Integrator:
         """Every option of this integrator (what ran)."""
         return asdict(self)
 
+    #: Whether :meth:`prepare_ensemble` runs the lanes in one compiled loop (``True``) or
+    #: one after another.
+    batched: ClassVar[bool] = False
+
     def prepare(self, case: Case, grid: Grid) -> Callable[[], Trajectory]:
         raise NotImplementedError
+
+    def prepare_ensemble(self, case: Case, grid: Grid, q0s: np.ndarray, v0s: np.ndarray
+                         ) -> Callable[[], list[Trajectory]]:
+        """Set up an ensemble: the case from each of the consistent initial states
+        ``(q0s[i], v0s[i])``; ``solve()`` returns one :class:`Trajectory` per lane.
+
+        Here the lanes are prepared and solved one after another (:attr:`batched` is
+        ``False``); methods with a compiled loop run them in one (``True``).
+        """
+        solves = [self.prepare(case.with_initial(q, v), grid) for q, v in zip(q0s, v0s)]
+        return lambda: [solve() for solve in solves]
 
     def check(self) -> None:
         """Validate the options; raise ``ValueError`` naming the bad one and where the class

@@ -20,7 +20,8 @@ drives the same functions by hand.
 
 Nothing in ``step`` branches in Python on the values of its arrays (failures are codes,
 selected with ``jnp.where``), so an ensemble of initial states is a leading axis away:
-``jax.vmap`` over ``(q0, v0)`` in ``start`` and over ``carry`` in ``step``.
+:meth:`FixedStep.prepare_ensemble` maps ``start`` over the lanes' ``(q0, v0)`` and runs the
+time loop under ``jax.vmap``, one compiled loop for every lane.
 """
 
 from __future__ import annotations
@@ -56,6 +57,8 @@ class FixedStep(Integrator):
     that solver for ``G M^{-1} G^T``; others get the one chosen by structure.
     """
 
+    batched = True
+
     def linear_algebra(self, mech: Mechanics):
         """The solver for ``G M^{-1} G^T`` that the steps use (:meth:`Mechanics.schur`)."""
         return mech.schur(getattr(self, "linear_solver", "auto"))
@@ -80,9 +83,23 @@ class FixedStep(Integrator):
         # Compiled once; run eagerly, each autodiff operation would compile on its own.
         carry0 = jax.jit(partial(self.start, mech, schur))(
             jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
+        return self._march(mech, schur, grid, carry0, lanes=False)
+
+    def prepare_ensemble(self, case: Case, grid: Grid, q0s, v0s):
+        """One compiled loop for the whole ensemble: ``start`` and the time loop under
+        ``jax.vmap`` over the lanes (:func:`integrators.loop.march`)."""
+        self.check()
+        mech = case.mech
+        schur = self.linear_algebra(mech)
+        carry0 = jax.jit(jax.vmap(partial(self.start, mech, schur), in_axes=(0, 0, None)))(
+            jnp.asarray(q0s, jnp.float64), jnp.asarray(v0s, jnp.float64),
+            jnp.asarray(grid.t0, jnp.float64))
+        return self._march(mech, schur, grid, carry0, lanes=True)
+
+    def _march(self, mech: Mechanics, schur, grid: Grid, carry0, lanes: bool):
         return march(mech, grid, self.h, carry0, partial(self.step, mech, schur),
                      partial(self.observe, mech), key=replace(self, h=None),
-                     linear_solver=schur.name, pattern_nnz=schur.nnz)
+                     linear_solver=schur.name, pattern_nnz=schur.nnz, lanes=lanes)
 
 
 class State(NamedTuple):

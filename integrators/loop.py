@@ -209,13 +209,14 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
 def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
           observe: Callable[[Any], tuple[jax.Array, jax.Array]],
           key: tuple | None = None, linear_solver: str = "dense",
-          pattern_nnz: int | None = None) -> Callable[[], Trajectory]:
+          pattern_nnz: int | None = None, lanes: bool = False) -> Callable:
     """Compile the time loop (or reuse it) and return ``solve()``.
 
     Parameters
     ----------
     carry0 : pytree
-        The method's state at ``t0`` (positions, momenta, warm starts...).
+        The method's state at ``t0`` (positions, momenta, warm starts...); with ``lanes``,
+        the states of an ensemble, stacked on a leading axis.
     step : callable
         ``step(carry, t, h) -> (carry1, code, residual, counts)``: one step from ``t``;
         ``code`` is 0 on success or a :class:`Failure`; ``residual`` the final Newton
@@ -228,56 +229,74 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         the same key, ``mech``, ``t0`` and grid sizes; without one it is compiled afresh.
     linear_solver, pattern_nnz
         What the step's linear algebra is, recorded in the trajectory.
+    lanes : bool
+        Run the ensemble of ``carry0`` in one compiled loop: the loop of one trajectory
+        under ``jax.vmap``. Each lane keeps its own step count, failure, counters, maxima
+        and samples; the loop runs until the last lane is done or has failed, and a lane
+        that has stopped is carried unchanged (a failed lane stops only itself).
 
     Returns
     -------
     solve : callable
-        ``solve() -> Trajectory``; its attribute ``compiled`` is the compiled loop (for
-        diagnostics such as whether XLA made it one kernel).
+        ``solve() -> Trajectory`` (with ``lanes``, a list of them, one per lane); its
+        attribute ``compiled`` is the compiled loop (for diagnostics such as whether XLA
+        made it one kernel).
     """
     plan = Plan.make(grid, h)
     # t_end is not in the loop (N is an argument): other horizons share it.
-    cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples)
+    width = jax.tree_util.tree_leaves(carry0)[0].shape[0] if lanes else None
+    cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples,
+                                          width)
     compiled = _LOOPS.get(cache_key) if cache_key is not None else None
     args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
     if compiled is None:
-        compiled = jax.jit(_loop(mech, grid, step, observe)).lower(*args).compile()
+        loop = _loop(mech, grid, step, observe)
+        if lanes:
+            loop = jax.vmap(loop, in_axes=(0, None, None, None, None))
+        compiled = jax.jit(loop).lower(*args).compile()
         if cache_key is not None:
             _LOOPS[cache_key] = compiled
             while len(_LOOPS) > CACHE_SIZE:
                 _LOOPS.popitem(last=False)
     else:
         _LOOPS.move_to_end(cache_key)
-    t0 = grid.t0
+    names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+    solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
 
-    def solve() -> Trajectory:
-        out = jax.block_until_ready(compiled(*args))
-        k, code, resid, q, v, wins, samp_q, samp_v, counts = jax.device_get(out)
-        wins = wins[:plan.n_windows]
-        samp_q, samp_v = samp_q[:plan.n_samples], samp_v[:plan.n_samples]
-        k, code = int(k), int(code)
-        assert q.dtype == np.float64, "the loop must run in float64"
-        t_final = t0 + k * plan.h
-        ends = plan.window_end_steps()
-        # A run that fails mid-window keeps that partial window (ending at its last good
-        # step): the maxima of what was computed are part of the record.
-        last = (max(k, 1) - 1) * plan.n_windows // plan.n_steps
-        reached = np.arange(plan.n_windows) <= last
-        names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
-        windows = {"t": t0 + np.minimum(ends[reached], k) * plan.h}
-        windows.update({name: wins[reached, i] for i, name in enumerate(names)})
-        n_samp = k // plan.stride + 1
-        samples = {"t": t0 + np.arange(n_samp) * plan.stride * plan.h,
-                   "q": samp_q[:n_samp], "v": samp_v[:n_samp]}
-        counts = {"n_steps": k, **{key: int(val) for key, val in zip(WORK, counts)}}
-        solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
-        if code == 0:
-            return Trajectory(Status.OK, "", t_final, q, v, windows, samples, counts, **solver)
-        message = (f"{Failure(code).message} at step {k + 1} (t = {t_final:.6g} -> "
-                   f"{t_final + plan.h:.6g}); last Newton residual {float(resid):.3e}")
-        return Trajectory(Status.FAILED, message, t_final, q, v, windows, samples, counts,
-                          fail_step=k + 1, fail_time=t_final, **solver)
+    def solve():
+        out = jax.device_get(jax.block_until_ready(compiled(*args)))
+        assert out[3].dtype == np.float64, "the loop must run in float64"
+        if not lanes:
+            return trajectory(plan, grid.t0, names, *out, **solver)
+        return [trajectory(plan, grid.t0, names, *(a[i] for a in out), **solver)
+                for i in range(len(out[0]))]
 
     solve.compiled = compiled
     return solve
+
+
+def trajectory(plan: Plan, t0: float, names: list[str], k, code, resid, q, v, wins, samp_q,
+               samp_v, counts, **solver) -> Trajectory:
+    """The :class:`Trajectory` of one run of the loop from its outputs (host arrays):
+    the windows and samples it reached, its counters, and its failure if it had one."""
+    k, code = int(k), int(code)
+    wins = wins[:plan.n_windows]
+    t_final = t0 + k * plan.h
+    ends = plan.window_end_steps()
+    # A run that fails mid-window keeps that partial window (ending at its last good
+    # step): the maxima of what was computed are part of the record.
+    last = (max(k, 1) - 1) * plan.n_windows // plan.n_steps
+    reached = np.arange(plan.n_windows) <= last
+    windows = {"t": t0 + np.minimum(ends[reached], k) * plan.h}
+    windows.update({name: wins[reached, i] for i, name in enumerate(names)})
+    n_samp = k // plan.stride + 1
+    samples = {"t": t0 + np.arange(n_samp) * plan.stride * plan.h,
+               "q": samp_q[:n_samp], "v": samp_v[:n_samp]}
+    counts = {"n_steps": k, **{key: int(val) for key, val in zip(WORK, counts)}}
+    if code == 0:
+        return Trajectory(Status.OK, "", t_final, q, v, windows, samples, counts, **solver)
+    message = (f"{Failure(code).message} at step {k + 1} (t = {t_final:.6g} -> "
+               f"{t_final + plan.h:.6g}); last Newton residual {float(resid):.3e}")
+    return Trajectory(Status.FAILED, message, t_final, q, v, windows, samples, counts,
+                      fail_step=k + 1, fail_time=t_final, **solver)

@@ -7,7 +7,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from linalg.dense import solve
+from linalg.dense import rarely, solve
 
 #: Relative residual at which a Krylov solve of the fallback's Newton correction stops
 #: (the forcing term of the inexact Newton method: each outer iteration contracts the
@@ -143,5 +143,5 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
             restart = (z, jnp.where(better, r, r0), jnp.inf, jnp.inf, norm(z), it)
             return iterate(restart, krylov_linear(residual, linear), it + max_iter)
 
-        state = jax.lax.cond(converged(state), lambda state: state, exact, state)
+        state = rarely(~converged(state), lambda: exact(state), state)
     return NewtonResult(state[0], converged(state), state[-1], norm(state[1]))

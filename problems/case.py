@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Callable, Mapping
 
@@ -66,6 +66,29 @@ class Reference:
         return any(abs(t - s) <= 1e-12 * max(1.0, abs(s)) for s in self.times)
 
 
+@dataclass(frozen=True)
+class Perturbation:
+    """How a case's initial values are perturbed for an ensemble (:mod:`problems.ensemble`).
+
+    Parameters
+    ----------
+    position : float
+        Standard deviation of the position noise relative to ``rms(q0)``.
+    velocity : float
+        Expected kinetic energy of the velocity noise relative to the case's energy scale.
+    fixed : tuple of int
+        Coordinates left as they are (an accumulated quantity such as dissipated work).
+    """
+
+    position: float = 1e-3
+    velocity: float = 1e-2
+    fixed: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        if not (self.position >= 0 and self.velocity >= 0):
+            raise ValueError(f"perturbation sizes must be >= 0: {self}")
+
+
 @dataclass(frozen=True, eq=False)
 class Case:
     """A system with consistent initial values, a time span, parameters and a reference.
@@ -84,6 +107,7 @@ class Case:
     energy_scale: float
     reference: Reference | None = None
     notes: Mapping[str, object] = field(default_factory=dict)
+    perturbation: Perturbation = Perturbation()
 
     @property
     def mech(self) -> Mechanics:
@@ -93,8 +117,14 @@ class Case:
         """The same case over ``[t0, t_end]``."""
         if not np.isfinite(t_end) or t_end <= self.t0:
             raise ValueError(f"{self.name}: t_end = {t_end} must be finite and > t0 = {self.t0}")
-        return Case(self.name, self.system, self.q0, self.v0, self.t0, float(t_end),
-                    self.params, self.energy_scale, self.reference, self.notes)
+        return replace(self, t_end=float(t_end))
+
+    def with_initial(self, q0: np.ndarray, v0: np.ndarray) -> "Case":
+        """The same system and horizon from other consistent initial values (an ensemble's
+        lane, :mod:`problems.ensemble`). The case's reference belongs to its own initial
+        values, so the new case has none."""
+        return replace(self, q0=np.asarray(q0, np.float64), v0=np.asarray(v0, np.float64),
+                       reference=None)
 
 
 @partial(jax.jit, static_argnames="mech")
@@ -121,25 +151,33 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     velocities by the one linear projection with the same metric. The solves with
     ``G M^{-1} G^T`` are the integrators' (:meth:`Mechanics.schur`, chosen by structure),
     under their one policy for redundant constraints (:mod:`linalg.dense`).
+
+    ``q`` and ``v`` may hold a batch of states on a leading axis (an ensemble's lanes,
+    :mod:`problems.ensemble`): each is projected, in one compiled call per iteration,
+    until the largest ``|g|`` of the batch is at most ``tol``.
     """
     schur = mech.schur("auto")
-    step = _projection_step(mech, schur)
+    step, g = _projection_step(mech, schur), mech.g
+    if np.ndim(q) == 2:
+        step, g = jax.vmap(step, in_axes=(0, None, 0)), jax.vmap(g, in_axes=(0, None))
+    step, g = jax.jit(step), jax.jit(g)
     t = jnp.asarray(t, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
     for _ in range(max_iter):
-        r = mech.g(q, t)
+        r = g(q, t)
         if float(jnp.max(jnp.abs(r), initial=0.0)) <= tol:
             break
         q = q - step(q, t, r)
     v = jnp.asarray(v, dtype=jnp.float64)
-    v = v - step(q, t, mech.vel_residual(q, v, t))
+    residual = mech.vel_residual if np.ndim(v) == 1 else jax.vmap(mech.vel_residual,
+                                                                  in_axes=(0, 0, None))
+    v = v - step(q, t, jax.jit(residual)(q, v, t))
     return np.asarray(q), np.asarray(v)
 
 
 def _projection_step(mech: Mechanics, schur):
-    """Compiled ``(q, t, r) -> M^{-1} G^T (G M^{-1} G^T)^{-1} r``."""
+    """``(q, t, r) -> M^{-1} G^T (G M^{-1} G^T)^{-1} r``."""
 
-    @jax.jit
     def step(q, t, r):
         lam = schur.solve(schur.factor(q, t), r)
         return mech.solve_mass(q, mech.GT(q, t, lam))
@@ -149,7 +187,8 @@ def _projection_step(mech: Mechanics, schur):
 
 def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
               params: Mapping[str, object], energy_scale: float,
-              reference: Reference | None = None, **notes) -> Case:
+              reference: Reference | None = None,
+              perturbation: Perturbation = Perturbation(), **notes) -> Case:
     """Build a :class:`Case`, checking the initial values.
 
     Parameters
@@ -170,6 +209,8 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
         (never ``|H0|``, which can be 0).
     reference : Reference, optional
         A reference solution (final errors and scd are n/a without one).
+    perturbation : Perturbation, optional
+        How an ensemble perturbs the initial values (:mod:`problems.ensemble`).
     **notes
         Anything else worth recording with the case.
 
@@ -202,4 +243,4 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
         q0, v0 = project(mech, q0, v0, t0)
         notes = {**notes, "projected": f"|g| = {pos:.2e}, |G v + g_t| = {vel:.2e} before projection"}
     return Case(name, system, q0, v0, t0, t_end, dict(params), float(energy_scale),
-                reference, notes)
+                reference, notes, perturbation)

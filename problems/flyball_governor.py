@@ -131,7 +131,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from problems import data, register
-from problems.case import Case, make_case
+from problems.case import Case, Perturbation, make_case
 from problems.mechanics import System
 
 #: Indices of the coordinates in ``q``.
@@ -245,4 +245,6 @@ def flyball_governor(length: float = PARAMS["length"], side: float = PARAMS["sid
     spin = 0.5 * float(spin_inertia(jnp.asarray(q0[THETA1:THETA2 + 1]), p)) * omega ** 2
     return make_case("flyball-governor", system, q0, v0, (0.0, t_end), p,
                      energy_scale=spin if spin > 0 else point_mass * gravity * length,
-                     reference=reference)
+                     reference=reference,
+                     # An ensemble perturbs the mechanism, not the work done on it so far.
+                     perturbation=Perturbation(fixed=(WORK,)))

@@ -425,3 +425,85 @@ def scaling(panels: list[tuple[str, list[dict]]], colors: dict) -> str:
                     labels.append(lab)
         _arrange(fig, 1, cols, (handles, labels), ncols=3)
         return _svg(fig)
+
+
+def distributions(entries: list[dict], colors: dict, title: str) -> str:
+    """Per-lane distributions of an ensemble's metrics: one box per run (``entries``: dicts
+    with ``label``, ``integrator`` and ``lanes``, the per-lane table), one panel per metric
+    (max |g|, max |G v + g_t|, max rel. energy error), log scale. Boxes span the quartiles,
+    whiskers the extremes (every lane is inside them), a line marks the median."""
+    panels = [("max_pos_residual", "max |g| per lane"),
+              ("max_vel_residual", "max |G v + g_t| per lane"),
+              ("rel_energy_error", "max rel. energy error per lane")]
+    with rc_context(RC):
+        fig, axes = _figure(1, len(panels), 4.0 * len(panels), 3.0 + 0.12 * len(entries))
+        for ax, (column, label) in zip(axes[0], panels):
+            data, names, shades = [], [], []
+            for entry in entries:
+                ok = np.asarray(entry["lanes"]["status"]) == 0
+                values = _floor(np.asarray(entry["lanes"][column])[ok])
+                values = values[np.isfinite(values)]
+                if len(values):
+                    data.append(values)
+                    names.append(entry["label"])
+                    shades.append(colors[entry["integrator"]][0])
+            if not data:
+                _empty(ax, f"{label}: not measured")
+                continue
+            boxes = ax.boxplot(data, orientation="horizontal", whis=(0, 100), widths=0.6,
+                               patch_artist=True, medianprops={"color": "black"})
+            for patch, shade in zip(boxes["boxes"], shades):
+                patch.set_facecolor(shade)
+                patch.set_alpha(0.7)
+            ax.set_xscale("log")
+            ax.set_yticks(range(1, len(names) + 1), names if ax is axes[0, 0] else [""] * len(names))
+            ax.set_xlabel(label)
+        side = 0.07 * max((len(e["label"]) for e in entries), default=0)
+        width, height = fig.get_size_inches()
+        fig.set_size_inches(width + side, height)
+        fig.subplots_adjust(left=(0.3 + side) / (width + side), right=0.98, top=0.85,
+                            bottom=0.2, wspace=0.15)
+        fig.suptitle(title)
+        return _svg(fig)
+
+
+def ensemble_cost(runs, colors: dict, title: str) -> str:
+    """Two panels per ensemble sweep: the median lane's max rel. energy error (or max |g|
+    where energy is not conserved) against wall time per lane, with a band from the best
+    lane to the worst; and the fraction of lanes that failed against ``h`` (or rtol)."""
+    with rc_context(RC):
+        fig, axes = _figure(1, 2, 8.0, 3.0)
+        accuracy, failures = axes[0]
+        metric = "energy" if runs["energy_q50"].notna().any() else "pos"
+        drawn = False
+        for key, grp in runs.groupby("integrator"):
+            color, marker = colors[key]
+            setting = grp["h"].where(grp["h"].notna(), grp["rtol"]).astype(float)
+            order = np.argsort(setting.to_numpy())
+            grp, setting = grp.iloc[order], setting.iloc[order]
+            failures.semilogx(setting, grp["failed_fraction"].astype(float), marker=marker,
+                              ms=4, lw=1.0, color=color, label=key)
+            done = grp[grp[f"{metric}_q50"].notna()]
+            if done.empty:
+                continue
+            cost = done["wall_s"].astype(float) / done["lanes"].astype(float)
+            cost_order = np.argsort(cost.to_numpy())
+            done, cost = done.iloc[cost_order], cost.iloc[cost_order]
+            accuracy.fill_between(cost, _floor(done[f"{metric}_q0"]),
+                                  _floor(done[f"{metric}_q100"]), color=color, alpha=0.2, lw=0)
+            accuracy.loglog(cost, _floor(done[f"{metric}_q50"]), marker=marker, ms=4, lw=1.0,
+                            color=color, label=key)
+            drawn = True
+        if drawn:
+            accuracy.set_xlabel("wall time per lane [s]")
+            accuracy.set_ylabel("median lane: " + ("max rel. energy error" if metric == "energy"
+                                                   else "max |g|") + "\n(band: best to worst)")
+        else:
+            _empty(accuracy, "no lane finished")
+        failures.set_xlabel("h (or rtol)")
+        failures.set_ylabel("fraction of lanes failed")
+        failures.set_ylim(-0.05, 1.05)
+        handles, labels = failures.get_legend_handles_labels()
+        _arrange(fig, 1, 2, (handles, labels), ncols=5)
+        fig.suptitle(title)
+        return _svg(fig)

@@ -3,7 +3,8 @@
 Sections, in order: the headline (which method wins each problem for drift, for energy and
 for cost at matched accuracy), the history of the drift gate's metrics across commits
 (when the store holds several), one collapsible section per problem (summary table, drift
-series, work-precision diagrams, accuracy targets, convergence orders), the study sections
+series, work-precision diagrams, accuracy targets, convergence orders), the ensembles
+(:mod:`reports.ensembles`; ensemble runs appear there only), the study sections
 (tables and figures stored by the studies a suite names, the seed reproduction among them:
 :mod:`studies`), the scaling
 section when a scaling benchmark's output folder is given (:mod:`reports.scaling`) and the
@@ -26,7 +27,7 @@ import pandas as pd
 from benchmarks.files import replace_file
 from benchmarks.records import Status
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
-from reports import figures, scaling as scaling_section
+from reports import ensembles as ensemble_section, figures, scaling as scaling_section
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
                               PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
                               convergence, cost_winner, drift_winner, energy_winner,
@@ -78,11 +79,14 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
         return load_series(db_path, run_id)
 
     current = latest(runs)
+    # Ensembles have a section of their own; every other section shows single runs.
+    ensembles = current[current["lanes"].notna()] if not current.empty else current
+    current = current[current["lanes"].isna()] if not current.empty else current
     members = _families(runs)
     colors = figures.palette(members)
 
     doc = Document(TITLE)
-    doc.add(Para(_scope(runs, current)))
+    doc.add(Para(_scope(runs, pd.concat([current, ensembles]))))
     if members:
         doc.add(Para("Families (one hue each in the figures, a shade and marker per "
                      "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
@@ -92,10 +96,11 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
                  tuple(targets), wp)
+    ensemble_section.section(doc, ensembles, series, colors)
     _studies(doc, artifacts)
     if scaling_data is not None:
         scaling_section.section(doc, scaling_data)
-    _provenance(doc, runs, current)
+    _provenance(doc, runs, pd.concat([current, ensembles]))
     built = f"Report built {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {db_path.name}."
     doc.add(Para(built))
 

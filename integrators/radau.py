@@ -1,0 +1,684 @@
+"""Radau IIA (three stages, order 5) with step-size control, on the index-3 and the
+stabilised index-2 forms of the equations of motion, in a compiled loop.
+
+The equations are written as a DAE with a singular, state-dependent mass,
+``B(y) y' = F(t, y)``, through its residual ``R(t, y, y') = B(y) y' - F(t, y)``: IDA's
+stabilised index-2 residual (:func:`integrators.ida.ggl_residual`) or the index-3 one
+here (:func:`index3_residual`). Its Jacobians come from autodiff of ``R`` in one place
+(:func:`iteration_blocks`). The loop runs step attempts inside ``lax.while_loop`` in
+chunks of a bounded number of accepted steps, which :class:`integrators.record.Recorder`
+measures, as the adaptive Baumgarte pairs do (:func:`integrators.baumgarte.run_chunk`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from functools import lru_cache, partial
+from typing import Callable, ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from numpy.polynomial import Polynomial
+
+from integrators.base import Failure, Grid, Integrator
+from integrators.ida import consistent_values, ggl_residual
+from integrators.loop import CACHE_SIZE, put
+from integrators.record import Recorder, batch_length
+from linalg.dense import lu_factor, lu_solve
+from problems.case import Case
+from problems.mechanics import Mechanics
+
+EPS = float(np.finfo(np.float64).eps)
+
+#: Tolerance of the tableau identities (coefficients from polynomial algebra in double
+#: precision, exact to a few ulps of the largest, ``|A^-1| ~ 10``).
+TABLEAU_TOL = 1e-12
+
+
+@dataclass(frozen=True)
+class RadauTableau:
+    """The three-stage Radau IIA method and what its simplified Newton iteration and its
+    error estimate need, computed from the collocation conditions and checked.
+
+    Nodes ``c``: the Radau right points on [0, 1], roots of
+    ``P_3(2x - 1) - P_2(2x - 1)`` (``(4 - sqrt 6)/10, (4 + sqrt 6)/10, 1``);
+    ``a_ij = int_0^{c_i} l_j`` (collocation), so the last row is ``b`` (stiffly accurate).
+    ``A^{-1}`` has one real eigenvalue ``gamma`` and a complex pair ``alpha +- i beta``;
+    with ``T = [u, x, y]`` (``u`` the real eigenvector, ``x + i y`` the one of
+    ``alpha + i beta``), ``T^{-1} A^{-1} T = [[gamma, 0, 0], [0, alpha, beta],
+    [0, -beta, alpha]]``. ``e`` gives the embedded solution's difference from ``y_{n+1}``:
+    ``y_hat - y_{n+1} = gamma_0 h y'_n + sum_j e_j Z_j`` with ``gamma_0 = 1/gamma`` and the
+    order-3 weights ``b_hat`` on the nodes ``(0, c)`` (Hairer and Wanner, *Solving
+    Ordinary Differential Equations II*, 1996, section IV.8).
+    """
+
+    c: np.ndarray
+    A: np.ndarray
+    A_inv: np.ndarray
+    gamma: float
+    alpha: float
+    beta: float
+    T: np.ndarray
+    T_inv: np.ndarray
+    e: np.ndarray
+
+    def __post_init__(self):
+        c, A, Ai, T, Ti = self.c, self.A, self.A_inv, self.T, self.T_inv
+        lam = np.array([[self.gamma, 0, 0], [0, self.alpha, self.beta],
+                        [0, -self.beta, self.alpha]])
+        gamma0 = 1.0 / self.gamma
+        b_hat = (self.e @ A) + A[-1]  # e = A^-T (b_hat - b)
+        checks = {
+            "row sums equal c": np.max(np.abs(A.sum(1) - c)),
+            # Order 5 = 2s - 1: the weights (last row) integrate degree 4 exactly.
+            "quadrature exact to degree 4":
+                max(abs(A[-1] @ c ** k - 1 / (k + 1)) for k in range(5)),
+            # C(3): a_ij integrate polynomials of degree 2 exactly on [0, c_i].
+            "collocation C(3)": max(np.max(np.abs(A @ c ** k - c ** (k + 1) / (k + 1)))
+                                    for k in range(3)),
+            "A^-1 is the inverse": np.max(np.abs(Ai @ A - np.eye(3))),
+            "T^-1 A^-1 T is block diagonal": np.max(np.abs(Ti @ Ai @ T - lam)),
+            "embedded weights of order 3": max(
+                abs(gamma0 * (k == 0) + b_hat @ c ** k - 1 / (k + 1)) for k in range(3)),
+        }
+        for name, err in checks.items():
+            if not err <= TABLEAU_TOL:
+                raise ValueError(f"Radau IIA tableau: {name} fails (error {err:.2e})")
+
+
+@lru_cache(maxsize=None)
+def radau_iia() -> RadauTableau:
+    """The three-stage Radau IIA tableau (:class:`RadauTableau`)."""
+    nodes = (Polynomial([-1, 2]) ** 3 * 2.5 - Polynomial([-1, 2]) * 1.5
+             - (Polynomial([-1, 2]) ** 2 * 1.5 - 0.5))  # P_3(2x - 1) - P_2(2x - 1)
+    c = np.sort(nodes.roots().real)
+    c[-1] = 1.0
+    A = np.zeros((3, 3))
+    for j in range(3):
+        others = np.delete(c, j)
+        integral = (Polynomial.fromroots(others) / np.prod(c[j] - others)).integ()
+        A[:, j] = integral(c) - integral(0.0)
+    A_inv = np.linalg.inv(A)
+    values, vectors = np.linalg.eig(A_inv)
+    real = int(np.argmin(np.abs(values.imag)))
+    pair = int(np.argmax(values.imag))
+    T = np.stack([vectors[:, real].real, vectors[:, pair].real, vectors[:, pair].imag], 1)
+    gamma = float(values[real].real)
+    gamma0 = 1.0 / gamma
+    # The embedded weights: gamma_0 on y'_n and b_hat on the stages, order 3 on (0, c).
+    b_hat = np.linalg.solve(np.vander(c, increasing=True).T,
+                            1.0 / np.arange(1, 4) - gamma0 * (np.arange(3) == 0))
+    e = A_inv.T @ (b_hat - A[-1])
+    return RadauTableau(c, A, A_inv, gamma, float(values[pair].real), float(values[pair].imag),
+                        T, np.linalg.inv(T), e)
+
+
+def index3_residual(mech: Mechanics):
+    """Index-3 form, ``y = (q, v, lam)``:
+
+    .. math::
+
+        0 = q' - v, \\quad 0 = M(q) v' - f(t, q, v) + G^T \\lambda, \\quad 0 = g(q, t),
+
+    with ``f`` the full right-hand side (:meth:`Mechanics.force`). Its components have
+    index 1 (``q``), 2 (``v``) and 3 (``lam``).
+    """
+    n, m = mech.n, mech.m
+
+    def R(t, y, yp):
+        q, v, lam = y[:n], y[n:2 * n], y[2 * n:2 * n + m]
+        return jnp.concatenate([
+            yp[:n] - v,
+            mech.mass_times(q, yp[n:2 * n]) - mech.force(t, q, v) + mech.GT(q, t, lam),
+            mech.g(q, t),
+        ])
+
+    return R
+
+
+class Formulation(NamedTuple):
+    """A DAE form: its residual ``R(t, y, y')``, its multiplier blocks of size ``m``, the
+    index of ``q``, ``v`` and each multiplier block (the error of a component of index
+    ``k`` is scaled by ``h^(k-1)``), and the constraint levels among its equations."""
+
+    residual: Callable[[Mechanics], Callable]
+    multiplier_blocks: int
+    index: tuple[int, ...]
+    enforces: tuple[str, ...]
+
+    def indices(self, n: int, m: int) -> np.ndarray:
+        """The index of every component of ``y``."""
+        sizes = (n, n) + (m,) * self.multiplier_blocks
+        return np.concatenate([np.full(k, i) for k, i in zip(sizes, self.index)])
+
+
+#: ``formulation`` option -> DAE form.
+FORMULATIONS: dict[str, Formulation] = {
+    "index3": Formulation(index3_residual, 1, (1, 2, 3), ("position",)),
+    "ggl": Formulation(ggl_residual, 2, (1, 1, 2, 2), ("position", "velocity")),
+}
+
+
+def stage_residual(R, t, y, h, Z):
+    """The collocation equations for the stage increments ``Z`` (3 x N) of a step of size
+    ``h`` from ``(t, y)``: ``R(t + c_i h, y + Z_i, K_i)`` with the stage derivatives
+    ``K = (A^{-1} Z)/h``, stacked (3 x N)."""
+    tab = radau_iia()
+    return jax.vmap(R)(t + jnp.asarray(tab.c) * h, y + Z, (jnp.asarray(tab.A_inv) @ Z) / h)
+
+
+def iteration_blocks(R, t, y, yp):
+    """``J = dR/dy`` at ``(t, y, y')`` and ``B = dR/dy'`` (the singular mass ``B(y)``), by
+    forward-mode autodiff of the residual."""
+    J = jax.jacfwd(lambda z: R(t, z, yp))(y)
+    B = jax.jacfwd(lambda w: R(t, y, w))(yp)
+    return J, B
+
+
+class Params(NamedTuple):
+    """The run's numbers, traced (one compilation serves every tolerance and horizon);
+    ``fnewt`` is the tolerance of Newton's test on the scaled increments
+    (:attr:`RadauIIA.fnewt`)."""
+
+    t_end: jax.Array
+    rtol: jax.Array
+    atol: jax.Array
+    fnewt: jax.Array
+    newton_tol: jax.Array
+    safety: jax.Array
+    first_step: jax.Array
+    max_step: jax.Array
+    max_steps: jax.Array
+
+
+class LoopState(NamedTuple):
+    """What the loop carries between step attempts.
+
+    ``J, B`` are the iteration blocks at the point where they were last evaluated
+    (``fresh`` while that point is the current ``y``), ``E1, E2`` the factorisations of
+    the real and the complex iteration matrix for the step ``h_lu``; ``Z, h_z`` the stage
+    increments and step of the last accepted step (the starting values of the next come
+    from its collocation polynomial); ``f0 = F(t, y)``, ``w = y'(t)``; ``work`` the counts
+    of :data:`WORK`; ``h_acc, err_acc`` the last accepted step and its error (the
+    predictive controller's memory); ``cause`` the worst reason (:data:`CAUSES`) among
+    the rejections since the last accepted step, which an underflow reports.
+    """
+
+    t: jax.Array
+    h: jax.Array
+    y: jax.Array
+    w: jax.Array
+    f0: jax.Array
+    J: jax.Array
+    B: jax.Array
+    E1: tuple
+    E2: tuple
+    h_lu: jax.Array
+    fresh: jax.Array
+    need_jac: jax.Array
+    Z: jax.Array
+    h_z: jax.Array
+    faccon: jax.Array
+    h_acc: jax.Array
+    err_acc: jax.Array
+    first: jax.Array
+    reject: jax.Array
+    n_accepted: jax.Array
+    work: jax.Array
+    cause: jax.Array
+    code: jax.Array
+
+
+#: The work counted in :class:`LoopState`'s ``work``: the COUNTERS of
+#: :mod:`integrators.base` but ``n_steps``, and the LU decompositions (pairs).
+WORK = ("n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves", "n_lu")
+
+#: Newton's contraction factor up to which the Jacobian is kept for the next step, and the
+#: step-size ratios within which the step (and the factorisations) are kept (RADAU5's
+#: defaults, Hairer and Wanner 1996, section IV.8).
+THETA_KEEP = 1e-3
+KEEP_RATIOS = (1.0, 1.2)
+#: Bounds of the ratio of a new step size to the last.
+FACTOR_MIN, FACTOR_MAX = 0.2, 8.0
+#: Steps below this many ulps of ``t`` have underflowed.
+UNDERFLOW_ULPS = 16
+#: Why attempts were rejected, from the least to the most telling: a step that
+#: underflows reports the last of these that its rejections met.
+CAUSES = (Failure.NONE, Failure.UNDERFLOW, Failure.NEWTON, Failure.NON_FINITE)
+
+
+def _factor(J, B, h, tab: RadauTableau):
+    """LU of the real ``gamma/h B + J`` and of the complex ``(alpha - i beta)/h B + J``."""
+    E1 = lu_factor(tab.gamma / h * B + J)
+    E2 = lu_factor(((tab.alpha - 1j * tab.beta) / h) * B + J.astype(jnp.complex128))
+    return E1, E2
+
+
+def _extrapolate(Z, r, c):
+    """Starting increments for the next step from the collocation polynomial ``P`` of the
+    last (``P(0) = 0``, ``P(c_k) = Z_k``): ``P(1 + c_i r) - P(1)``, ``r`` the ratio of the
+    new step to the last."""
+    x = np.concatenate([[0.0], c])
+    theta = 1.0 + jnp.asarray(c) * r
+    L = jnp.stack([
+        jnp.prod(jnp.stack([(theta - x[j]) / (x[k] - x[j]) for j in range(4) if j != k]), 0)
+        for k in range(1, 4)], axis=1)
+    return L @ Z - Z[2]
+
+
+@partial(jax.jit, static_argnames=("mech", "formulation"))
+def initial_state(y0, yp0, t0, params: Params, *, mech: Mechanics,
+                  formulation: str) -> LoopState:
+    """The loop state at ``t0``: the iteration blocks and their factorisations for the
+    first step, ``F(t0, y0)``."""
+    tab, R = radau_iia(), FORMULATIONS[formulation].residual(mech)
+    N = y0.shape[0]
+    J, B = iteration_blocks(R, t0, y0, yp0)
+    h0 = jnp.minimum(jnp.minimum(params.first_step, params.max_step), params.t_end - t0)
+    E1, E2 = _factor(J, B, h0, tab)
+    f0 = -R(t0, y0, jnp.zeros(N))
+    # One residual, one Jacobian and one pair of decompositions so far.
+    work = jnp.array([0, 1, 1, 0, 0, 1], jnp.int64)
+    false, true = jnp.asarray(False), jnp.asarray(True)
+    return LoopState(t0, h0, y0, yp0, f0, J, B, E1, E2, h0, true, false, jnp.zeros((3, N)),
+                     h0, jnp.asarray(1.0), h0, jnp.asarray(1e-2), true, false,
+                     jnp.zeros((), jnp.int64), work, jnp.zeros((), jnp.int32),
+                     jnp.zeros((), jnp.int32))
+
+
+def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: int):
+    """One step attempt: ``(state, accepted)``."""
+    tab, form = radau_iia(), FORMULATIONS[formulation]
+    R = form.residual(mech)
+    n, N = mech.n, st.y.shape[0]
+    A_inv = jnp.asarray(tab.A_inv)
+    T, T_inv = jnp.asarray(tab.T), jnp.asarray(tab.T_inv)
+    exponent = jnp.asarray(form.indices(mech.n, mech.m) - 1, jnp.float64)
+    zeros = jnp.zeros(N)
+
+    def constraints(t, y):
+        # The constraint rows of R do not involve y' (XLA drops the rest).
+        return R(t, y, zeros)[2 * n:]
+
+    t, y = st.t, st.y
+    # A step that would end within 1e-4 h of t_end ends there.
+    last = t + 1.0001 * st.h >= p.t_end
+    h = jnp.where(last, p.t_end - t, st.h)
+    t1 = jnp.where(last, p.t_end, t + h)
+    J, B = jax.lax.cond(st.need_jac, lambda: iteration_blocks(R, t, y, st.w),
+                        lambda: (st.J, st.B))
+    refactor = st.need_jac | (h != st.h_lu)
+    E1, E2 = jax.lax.cond(refactor, lambda: _factor(J, B, h, tab), lambda: (st.E1, st.E2))
+    fresh = st.fresh | st.need_jac
+    # Components of index k count with h^(k-1) in the error and Newton norms.
+    h_index = h ** exponent
+    scal = (p.atol + p.rtol * jnp.abs(y)) / h_index
+    Z0 = jnp.where(st.first, jnp.zeros((3, N)), _extrapolate(st.Z, h / st.h_z, tab.c))
+    # Round-off floors, row by row (newton.py's rule): eps times the magnitude of the
+    # terms of each residual row; residuals are measured in these units.
+    floor = EPS * (1.0 + jnp.abs(J) @ jnp.abs(y) + jnp.abs(B) @ jnp.abs(st.w))
+    faccon0 = jnp.maximum(st.faccon, EPS) ** 0.8
+
+    def body(s):
+        Z, k, k_ok, dynold, thqold, theta, faccon, cres, held, res_prev, _, hhfac = s
+        Rs = stage_residual(R, t, y, h, Z)
+        res = jnp.max(jnp.abs(Rs) / floor)
+        at_floor = res <= 1e3
+        # A residual that has stopped contracting at its round-off floor: Z solves the
+        # stage equations, and the increments are rounding noise (amplified ~1/h in the
+        # multipliers, which no scaled test would pass at tight tolerances).
+        noise = (k >= 1) & at_floor & (res > 0.5 * res_prev) & held
+        rho = -(T_inv @ Rs)
+        d12 = lu_solve(E2, rho[1] + 1j * rho[2])
+        dW = jnp.stack([lu_solve(E1, rho[0]), d12.real, d12.imag])
+        dyno = jnp.sqrt(jnp.mean((dW / scal) ** 2))
+        k = k + 1
+        thq = dyno / dynold
+        theta = jnp.where(k == 1, theta, jnp.where(k == 2, thq, jnp.sqrt(thq * thqold)))
+        contracting = theta < 0.99
+        faccon = jnp.where((k > 1) & contracting, theta / (1.0 - theta), faccon)
+        # Simplified Newton converges linearly: the error left after the iterations still
+        # allowed is about faccon dyno theta^(nit - 1 - k); if it is predicted to stay
+        # above the tolerance, a smaller step is cheaper than going on.
+        dyth = faccon * dyno * theta ** (nit - 1 - k) / p.fnewt
+        diverged = ~jnp.all(jnp.isfinite(dW)) | ((k > 1) & ~contracting & ~at_floor)
+        slow = (k > 1) & (k < nit) & (k_ok == 0) & (dyth >= 1.0) & ~at_floor
+        hhfac = 0.8 * jnp.clip(dyth, 1e-4, 20.0) ** (-1.0 / (4 + nit - 1 - k))
+        Z1 = Z + T @ dW
+        k_ok = jnp.where((k_ok == 0) & (faccon * dyno <= p.fnewt), k, k_ok)
+        # Then the constraints at the step end to round-off (up to nit more iterations).
+        con = jnp.abs(constraints(t1, y + Z1[2]))
+        cres1 = jnp.max(con / floor[2 * n:], initial=0.0)
+        # Evaluating g at y + Z rounds to a few units of the floor: 100 is round-off.
+        held1 = (jnp.max(con, initial=0.0) <= p.newton_tol) | ((cres1 > 0.5 * cres)
+                                                                & (cres1 <= 1e2))
+        spent = jnp.where(k_ok == 0, k >= nit, k - k_ok >= nit)
+        status = jnp.where(noise, 1, jnp.where(diverged, 2, jnp.where(slow, 3, jnp.where(
+            (k_ok > 0) & held1, 1, jnp.where(spent, 2, 0))))).astype(jnp.int32)
+        return (jnp.where(noise, Z, Z1), k, k_ok, jnp.maximum(dyno, EPS), thq, theta, faccon,
+                cres1, held1, res, status, hhfac)
+
+    int0, false = jnp.zeros((), jnp.int32), jnp.asarray(False)
+    s0 = (Z0, int0, int0, jnp.asarray(1.0), jnp.asarray(1.0), jnp.asarray(0.0), faccon0,
+          jnp.asarray(jnp.inf), false, jnp.asarray(jnp.inf), int0, jnp.asarray(1.0))
+    Z, k, k_ok, _, _, theta, faccon, _, _, _, status, hhfac = jax.lax.while_loop(
+        lambda s: s[10] == 0, body, s0)
+    y1 = y + Z[2]
+    converged = (status == 1) & jnp.all(jnp.isfinite(y1))
+
+    def estimate():
+        """The embedded error, filtered through ``E1^{-1}`` (stiff components damped)."""
+        gamma0 = 1.0 / tab.gamma
+        ez = (jnp.asarray(tab.e / gamma0) @ Z) / h
+        Bez = jax.jvp(lambda w: R(t, y, w), (zeros,), (ez,))[1]
+        scal_e = (p.atol + p.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))) / h_index
+
+        def norm(err):
+            return jnp.sqrt(jnp.mean((err / scal_e) ** 2))
+
+        err = lu_solve(E1, st.f0 + Bez)
+        # On a first or a retried step a large estimate may be an unresolved stiff
+        # component: one more filtering through F at y + err (Hairer and Wanner).
+        again = (norm(err) >= 1.0) & (st.first | st.reject)
+        err = jax.lax.cond(again, lambda: lu_solve(E1, -R(t, y + err, zeros) + Bez),
+                           lambda: err)
+        return jnp.maximum(norm(err), 1e-10), again
+
+    en, again = jax.lax.cond(converged, estimate,
+                             lambda: (jnp.asarray(jnp.inf), jnp.asarray(False)))
+    accept = converged & (en < 1.0)
+    # The next step: h err^(-1/4) with a safety factor that shrinks as Newton needed
+    # more iterations to its test, and, after an accepted step, Gustafsson's predictive
+    # controller.
+    fac = jnp.minimum(p.safety, p.safety * (1 + 2 * nit) / (k_ok + 2 * nit))
+    quot = jnp.clip(en ** 0.25 / fac, 1.0 / FACTOR_MAX, 1.0 / FACTOR_MIN)
+    gus = jnp.clip((st.h_acc / h) * (en ** 2 / st.err_acc) ** 0.25 / p.safety,
+                   1.0 / FACTOR_MAX, 1.0 / FACTOR_MIN)
+    quot = jnp.where(accept & (st.n_accepted >= 1), jnp.maximum(quot, gus), quot)
+    h_new = jnp.minimum(h / quot, p.max_step)
+    new_jac = theta > THETA_KEEP
+    ratio = h_new / h
+    h_acc_next = jnp.where(st.reject, jnp.minimum(h_new, h), h_new)
+    # A step size that would barely change keeps the factorisations (and the step).
+    h_acc_next = jnp.where(~new_jac & (ratio >= KEEP_RATIOS[0]) & (ratio <= KEEP_RATIOS[1]),
+                           h, h_acc_next)
+    h_next = jnp.where(accept, h_acc_next,
+                       jnp.where(status == 2, 0.5 * h,
+                                 jnp.where(status == 3, hhfac * h,
+                                           jnp.where(st.first, 0.1 * h, h_new))))
+    need_jac = jnp.where(accept, new_jac, jnp.where(converged, False, ~fresh))
+    f0 = jax.lax.cond(accept, lambda: -R(t1, y1, zeros), lambda: st.f0)
+    underflow = ~accept & (h_next <= UNDERFLOW_ULPS * EPS * jnp.maximum(1.0, jnp.abs(t)))
+    cause = jnp.where(accept, 0, jnp.maximum(st.cause, jnp.where(
+        converged, 1, jnp.where(jnp.all(jnp.isfinite(y1)), 2, 3)))).astype(jnp.int32)
+    code = jnp.where(underflow, jnp.asarray([int(f) for f in CAUSES])[cause],
+                     Failure.NONE).astype(jnp.int32)
+    extra = again.astype(jnp.int64)
+    work = st.work + jnp.stack([
+        (~accept).astype(jnp.int64),
+        3 * k + accept + extra,
+        st.need_jac.astype(jnp.int64),
+        jnp.asarray(k, jnp.int64),
+        2 * k + converged + extra,
+        refactor.astype(jnp.int64)])
+
+    def pick(new, old):
+        return jnp.where(accept, new, old)
+
+    state = LoopState(
+        t=pick(t1, t), h=h_next, y=pick(y1, y), w=pick((A_inv[2] @ Z) / h, st.w), f0=f0,
+        J=J, B=B, E1=E1, E2=E2, h_lu=h, fresh=fresh & ~accept, need_jac=need_jac,
+        Z=pick(Z, st.Z), h_z=pick(h, st.h_z), faccon=faccon,
+        h_acc=pick(h, st.h_acc), err_acc=pick(jnp.maximum(1e-2, en), st.err_acc),
+        first=st.first & ~accept, reject=~accept, n_accepted=st.n_accepted + accept,
+        work=work, cause=cause, code=code)
+    return state, accept
+
+
+@partial(jax.jit, static_argnames=("mech", "formulation", "nit"))
+def run_chunk(state: LoopState, params: Params, *, mech: Mechanics, formulation: str,
+              nit: int):
+    """Make step attempts until a batch of accepted steps is full, or the run ends.
+
+    Returns ``(state, t, q, v, k)``: the accepted steps are ``t[:k]``, ``q[:k]``,
+    ``v[:k]``. The run ends at ``t_end``, on a failure code, or after
+    ``params.max_steps`` accepted steps.
+    """
+    rows, n = batch_length(mech.n), mech.n
+
+    def cond(carry):
+        k, st = carry[0], carry[1]
+        return ((k < rows) & (st.t < params.t_end) & (st.code == 0)
+                & (st.n_accepted < params.max_steps))
+
+    def body(carry):
+        k, st, buf_t, buf_q, buf_v = carry
+        st, accept = _attempt(st, params, mech, formulation, nit)
+        # In-place row updates rather than scatters (see integrators.loop on why).
+        buf_t = put(buf_t, k, jnp.where(accept, st.t, buf_t[k]))
+        buf_q = put(buf_q, k, jnp.where(accept, st.y[:n], buf_q[k]))
+        buf_v = put(buf_v, k, jnp.where(accept, st.y[n:2 * n], buf_v[k]))
+        return k + accept, st, buf_t, buf_q, buf_v
+
+    carry = (jnp.zeros((), jnp.int64), state, jnp.zeros(rows), jnp.zeros((rows, n)),
+             jnp.zeros((rows, n)))
+    return jax.lax.while_loop(cond, body, carry)
+
+
+#: Compiled chunks kept for reuse, keyed by system, formulation and iteration limit.
+_CHUNKS: OrderedDict = OrderedDict()
+
+
+def compiled_chunk(state: LoopState, params: Params, mech: Mechanics, formulation: str,
+                   nit: int):
+    """:func:`run_chunk` compiled for this system and options (or the kept executable)."""
+    key = (mech, formulation, nit)
+    if key not in _CHUNKS:
+        _CHUNKS[key] = run_chunk.lower(state, params, mech=mech, formulation=formulation,
+                                       nit=nit).compile()
+        while len(_CHUNKS) > CACHE_SIZE:
+            _CHUNKS.popitem(last=False)
+    _CHUNKS.move_to_end(key)
+    return _CHUNKS[key]
+
+
+@dataclass(frozen=True)
+class RadauIIA(Integrator):
+    """Radau IIA with three stages (order 5, adaptive) on the index-3 or the stabilised
+    index-2 form of the equations of motion, after Hairer and Wanner's RADAU5 (*Solving
+    Ordinary Differential Equations II*, 2nd ed., 1996, sections IV.8 and VII.4).
+
+    The equations of motion ``M(q) q'' = f(t, q, q') - G^T lambda``, ``g(q, t) = 0`` in
+    first-order form ``B(y) y' = F(t, y)`` with a singular mass ``B``:
+
+    - ``formulation = "index3"``, ``y = (q, v, lambda)`` (:func:`index3_residual`):
+      ``q' = v``, ``M(q) v' = f - G^T lambda``, ``0 = g(q, t)``; ``q`` has index 1, ``v``
+      index 2, ``lambda`` index 3. Enforces ``g = 0`` at every step end (the last stage is
+      the step end: the method is stiffly accurate); ``G v + g_t`` is not enforced.
+    - ``formulation = "ggl"``, ``y = (q, v, lambda, mu)``
+      (:func:`integrators.ida.ggl_residual`, Gear, Gupta and Leimkuhler 1985):
+      ``q' = v - G^T mu``, ``M(q) v' = f - G^T lambda``, ``0 = g``, ``0 = G v + g_t``;
+      ``q, v`` of index 1, the multipliers of index 2. Enforces both levels.
+
+    **Method.** Collocation at the Radau points ``c = ((4 - sqrt 6)/10, (4 + sqrt 6)/10,
+    1)`` (:func:`radau_iia`): the stage increments ``Z_i = Y_i - y_n`` solve
+    ``B(Y_i) K_i = F(t_n + c_i h, Y_i)`` with ``K = (A^{-1} Z)/h`` the stage derivatives,
+    and ``y_{n+1} = y_n + Z_3``. Order 5 (``2s - 1``) in ``y`` for ODEs; on the index-3
+    form the positions keep order 5, the velocities order 3 and the multipliers order 2
+    (Hairer, Lubich and Roche 1989); on the index-2 form ``q, v`` keep order 5 and the
+    multipliers order 3. Not symplectic; L-stable.
+
+    **Newton.** Simplified Newton with the iteration matrix ``A^{-1}/h (x) B + I (x) J``
+    frozen at ``(t_n, y_n, y'_n)`` (``J = dR/dy``, ``B = dR/dy'``, autodiff of the
+    residual ``R = B y' - F``, :func:`iteration_blocks`), block-diagonalised by the
+    eigenvectors of ``A^{-1}``: each iteration solves one real system with
+    ``gamma/h B + J`` and one complex system with ``(alpha - i beta)/h B + J``, each
+    factorised once (LU, equilibrated, :func:`linalg.dense.lu_factor`) and reused while
+    ``h`` and ``J`` are. Starting values come from the collocation polynomial of the last
+    step, extrapolated. Convergence: RADAU5's test on the scaled increments,
+    ``theta/(1 - theta) ||dZ|| <= fnewt`` with the contraction rate ``theta``, and, since
+    the forms hold the constraints as equations, ``max |constraint rows at t_{n+1}| <=
+    newton_tol`` or at its round-off floor (as :func:`integrators.newton.newton`
+    defines it): ``g`` (and ``G v + g_t``) hold to round-off at every step end. Divergence
+    (``theta >= 0.99``) halves ``h``, a predicted slow convergence shrinks it, and either
+    re-evaluates a Jacobian that was not fresh.
+
+    **Error and step size.** Hairer's embedded estimate ``err = (gamma/h B + J)^{-1}
+    (F(t_n, y_n) + B sum_j d_j Z_j / h)``, ``d = (-(13 + 7 sqrt 6)/3, (-13 + 7 sqrt 6)/3,
+    -1/3)`` (order 3; the solve damps stiff components), filtered once more through
+    ``F(y_n + err)`` on a first or retried step with ``||err|| >= 1``. Its RMS norm
+    weighs component ``i`` by ``(atol + rtol max(|y_n|, |y_{n+1}|)) / h^(k_i - 1)``
+    with ``k_i`` its index (RADAU5's ``nind`` scaling: the local errors of algebraic
+    components are ``O(h^(1-k))`` larger by nature). New step ``h fac err^(-1/4)``,
+    ``fac = safety (1 + 2 nit)/(newt + 2 nit)`` capped at ``safety`` (``newt`` the
+    iterations Newton's test took), ratio in [0.2, 8]; after an accepted step the smaller
+    of that and Gustafsson's predictive ``h_n/h_{n-1} (err_{n-1}/err_n^2)^(1/4)`` step;
+    no increase right after a rejection; the Jacobian is kept when Newton contracted by
+    ``theta <= 1e-3``, and the step with its factorisations when the ratio is in
+    [1, 1.2].
+
+    **Tolerances.** The error test takes ``rtol`` and ``atol`` as given, as the suite's
+    other adaptive methods do. RADAU5 itself first maps them to ``rtol' = 0.1
+    rtol^(2/3)``, ``atol' = rtol' atol/rtol``, meant to make the global error follow
+    ``rtol``; here that mapping gave final errors on the pendulum (10 s) of 6, 64 and 149
+    times ``rtol`` = 1e-6, 1e-8 and 1e-10 (index-3 form; 4, 35 and 78 for ``ggl``): the
+    order-3 estimate overstates the order-5 local error by a factor that grows as ``h``
+    shrinks, and the mapping undoes too much of it. Taken as given they give 1.7, 0.6
+    and 5.8 times ``rtol`` (0.7, 0.3 and 0.1 for ``ggl``), at 1.0, 2.5 and 3.8 times the
+    steps.
+
+    Redundant constraints (``G(q0)`` of rank below ``m``) make the stage systems singular
+    everywhere: the run fails at once, saying so (as IDA's does).
+
+    **Counts.** ``n_steps`` accepted and ``n_rejected`` rejected attempts (error test or
+    Newton), ``n_f_evals`` residual evaluations (three per Newton iteration, one per
+    accepted step for ``F(t_{n+1}, y_{n+1})``, one per extra filtering; the constraint
+    checks evaluate ``g`` alone and are not counted), ``n_jac_evals`` evaluations of
+    ``J`` and ``B``, ``n_newton`` Newton iterations, ``n_lin_solves`` solves (a real and
+    a complex one per iteration, one per error estimate), and ``extra["n_lu"]`` the
+    factorisations (pairs of a real and a complex LU). Measured at every accepted step.
+
+    Parameters
+    ----------
+    formulation : {"index3", "ggl"}
+        The DAE form (:data:`FORMULATIONS`).
+    rtol : float
+        Relative tolerance.
+    atol : float
+        Absolute tolerance; NaN (the default) sets it equal to ``rtol`` at construction.
+    newton_tol : float
+        Bound on the constraint rows at the step end; the default 1e-16 means "to
+        round-off".
+    newton_max_iter : int
+        Newton iterations per attempt (RADAU5's ``nit``).
+    safety : float
+        Safety factor of the step-size control.
+    first_step : float
+        First step attempted (RADAU5's default, 1e-6).
+    max_step : float
+        Largest step; ``inf`` for none.
+    max_steps : int
+        Accepted steps allowed over the run; reaching it fails the run.
+    linear_solver : {"auto", "dense"}
+        The stage systems' linear algebra: dense LU (no structured path yet).
+    """
+
+    adaptive: ClassVar[bool] = True
+    family: ClassVar[str] = "Radau IIA"
+    nominal_order: ClassVar[int] = 5
+
+    formulation: str = "index3"
+    rtol: float = 1e-6
+    atol: float = math.nan
+    newton_tol: float = 1e-16
+    newton_max_iter: int = 7
+    safety: float = 0.9
+    first_step: float = 1e-6
+    max_step: float = math.inf
+    max_steps: int = 10_000_000
+    linear_solver: str = "auto"
+
+    @property
+    def enforces(self) -> tuple[str, ...]:
+        return FORMULATIONS[self.formulation].enforces
+
+    def check(self) -> None:
+        super().check()
+        name = type(self).__name__
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"{name}: formulation = {self.formulation!r} is not one of "
+                             f"{', '.join(FORMULATIONS)}")
+        if self.linear_solver not in ("auto", "dense"):
+            raise ValueError(f"{name}: linear_solver = {self.linear_solver!r} is not one of "
+                             "auto, dense")
+        if not 0 < self.safety <= 1:
+            raise ValueError(f"{name}: safety = {self.safety} must lie in (0, 1]")
+        if not (self.first_step > 0 and self.max_step > 0 and self.max_steps >= 1):
+            raise ValueError(f"{name}: need first_step > 0, max_step > 0 and max_steps >= 1")
+
+    @property
+    def fnewt(self) -> float:
+        """RADAU5's tolerance of Newton's test on the scaled increments,
+        ``max(10 eps/rtol, min(0.03, rtol^(1/2)))``."""
+        return max(10 * EPS / self.rtol, min(0.03, self.rtol ** 0.5))
+
+    def prepare(self, case: Case, grid: Grid):
+        self.check()
+        mech = case.mech
+        n = mech.n
+        form = FORMULATIONS[self.formulation]
+        t0, t_end = float(grid.t0), float(grid.t_end)
+        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0)
+        f64 = partial(jnp.asarray, dtype=jnp.float64)
+        params = Params(f64(t_end), f64(self.rtol), f64(self.atol), f64(self.fnewt),
+                        f64(self.newton_tol),
+                        f64(self.safety), f64(self.first_step), f64(self.max_step),
+                        jnp.asarray(self.max_steps, jnp.int64))
+        recorder = Recorder(mech, grid)
+        sampling = "every internal step (accepted steps)"
+        # Redundant constraints make the stage systems singular everywhere. Their basic
+        # solutions (linalg.dense) keep Newton going, but at a crawl: on bricard (rank 23
+        # of 24) 102 steps and 145 rejections took 14 s for 0.1 s of motion.
+        rank = int(np.linalg.matrix_rank(np.asarray(mech.G(f64(case.q0), f64(t0)))))
+        if rank < mech.m:
+            def refuse():
+                recorder.start(t0, y0[:n], y0[n:2 * n])
+                return recorder.trajectory(
+                    f"G(q0) has rank {rank} < m = {mech.m} (redundant constraints): the "
+                    "stage systems are singular", t0, y0[:n], y0[n:2 * n], {"n_steps": 0},
+                    sampling, linear_solver="dense")
+            return refuse
+        static = dict(mech=mech, formulation=self.formulation)
+        state0 = initial_state(f64(y0), f64(yp0), f64(t0), params, **static)
+        chunk = compiled_chunk(state0, params, nit=self.newton_max_iter, **static)
+
+        def solve():
+            recorder.start(t0, y0[:n], y0[n:2 * n])
+            state = state0
+            while True:
+                k, state, buf_t, buf_q, buf_v = chunk(state, params)
+                k = int(k)
+                buf_t, buf_q, buf_v = jax.device_get((buf_t, buf_q, buf_v))
+                assert buf_q.dtype == np.float64, "the loop must run in float64"
+                recorder.extend(buf_t[:k], buf_q[:k], buf_v[:k])
+                code, t, steps = jax.device_get((state.code, state.t, state.n_accepted))
+                code, t, steps = int(code), float(t), int(steps)
+                if code or t >= t_end or steps >= self.max_steps:
+                    break
+            work = dict(zip(WORK, (int(x) for x in jax.device_get(state.work))))
+            counts = {"n_steps": steps, **{key: work[key] for key in WORK if key != "n_lu"}}
+            y = np.asarray(jax.device_get(state.y))
+            if code == 0 and t < t_end:
+                code = Failure.MAX_STEPS
+            message = ""
+            if code:
+                what = Failure(code).message.format(max_steps=self.max_steps, t_end=t_end)
+                message = (f"{what}; at step {steps + 1} (t = {t:.6g}, step size reduced to "
+                           f"{float(state.h):.3g})")
+            return recorder.trajectory(message, t, y[:n], y[n:2 * n], counts, sampling,
+                                       extra={"n_lu": work["n_lu"]}, linear_solver="dense")
+
+        return solve

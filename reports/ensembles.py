@@ -1,0 +1,80 @@
+"""The report's ensembles section: drift and energy error as distributions over initial states.
+
+One subsection per problem with ensemble runs (``lanes`` set): a table of each run's
+quantiles over its lanes (:class:`benchmarks.records.Spread`) and failed fraction, the
+per-lane distributions of each metric per method (box plots from the stored per-lane
+tables), and the median lane's accuracy against cost per lane with a band from the best
+lane to the worst beside the failed fraction against the setting. The verdicts name the
+method with the smallest worst-lane (q100) and the smallest median-lane (q50) max rel.
+energy error (max |g| where energy is not conserved), each said to be which.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from reports import figures
+from reports.analysis import fmt, setting
+from reports.document import Document, Figure, Para, Table
+
+
+def section(doc: Document, runs: pd.DataFrame, series, colors: dict) -> None:
+    """Add the section for the ensemble runs among ``runs`` (the latest of each identity);
+    nothing when there are none."""
+    if runs.empty:
+        return
+    doc.heading(2, "Ensembles")
+    doc.add(Para(
+        "Each ensemble runs one method from many initial states near the problem's own "
+        "(lane 0 is the problem's own; the others are perturbed and projected onto the "
+        "constraints, drawn from the run's seed), in one compiled loop where the method "
+        "allows ('one loop') or lane by lane. Quantiles are over the lanes that finished; "
+        "wall time is the whole ensemble's solve, and work the sum over its lanes. Final "
+        "errors exist for lane 0 alone (no reference is known for the perturbed states)."))
+    for problem in sorted(runs["problem"].unique()):
+        _problem(doc, problem, runs[runs["problem"] == problem], series, colors)
+
+
+def _verdicts(runs: pd.DataFrame) -> str:
+    metric = "energy" if runs["energy_q50"].notna().any() else "pos"
+    name = "max rel. energy error" if metric == "energy" else "max |g|"
+    parts = []
+    for q, which in ((100, "worst lane"), (50, "median lane")):
+        column = f"{metric}_q{q}"
+        done = runs[runs[column].notna()]
+        if done.empty:
+            continue
+        best = done.loc[done[column].astype(float).idxmin()]
+        parts.append(f"smallest {name} of the {which} (q{q}): {best['integrator']} "
+                     f"{setting(best)} ({fmt(best[column])})")
+    return "Verdicts: " + ("; ".join(parts) if parts else "no ensemble finished a lane") + "."
+
+
+def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) -> None:
+    doc.heading(3, f"Ensembles: {problem}")
+    runs = runs.sort_values(["integrator", "h", "rtol"])
+    doc.add(Para(_verdicts(runs)))
+    rows = []
+    for _, r in runs.iterrows():
+        rows.append([r["integrator"], setting(r), f"{int(r['lanes'])} (seed {int(r['seed'])})",
+                     "one loop" if r["batched"] == 1 else "lane by lane",
+                     f"{float(r['failed_fraction']):.3g}",
+                     *(fmt(r[f"pos_q{q}"]) for q in (50, 90, 100)),
+                     *(fmt(r[f"energy_q{q}"]) for q in (50, 90, 100)),
+                     fmt(r["wall_s"])])
+    doc.add(Table(["integrator", "setting", "lanes", "run as", "failed", "max|g| q50", "q90",
+                   "q100", "energy q50", "q90", "q100", "wall s"], rows,
+                  "Quantiles over the lanes of max |g| and of max rel. energy error; 'failed' "
+                  "is the fraction of lanes that did not finish."))
+    entries = [{"label": f"{r['integrator']} {setting(r)}", "integrator": r["integrator"],
+                "lanes": series(int(r["run_id"]))["lanes"]} for _, r in runs.iterrows()]
+    entries = [e for e in entries if e["lanes"]]
+    if entries:
+        doc.add(Figure(f"{problem}-ensemble-distributions",
+                       figures.distributions(entries, colors, problem),
+                       "Per-lane distributions, one box per run: the box spans the middle "
+                       "half of the lanes, the whiskers every lane, the line the median."))
+    doc.add(Figure(f"{problem}-ensemble-cost", figures.ensemble_cost(runs, colors, problem),
+                   "Left: the median lane against wall time per lane, the band from the best "
+                   "lane to the worst. Right: the fraction of lanes that failed against the "
+                   "setting."))
