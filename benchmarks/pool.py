@@ -61,6 +61,7 @@ from typing import Callable, Iterable
 
 import jax
 import jax.numpy as jnp
+import threadpoolctl
 
 import problems
 from benchmarks import compilation
@@ -84,6 +85,21 @@ MAX_TASKS_PER_WORKER = 200
 STARTUP_LIMIT = 300.0
 #: After this many workers in a row die before they are ready, the remaining tasks fail.
 MAX_START_FAILURES = 3
+
+
+def one_blas_thread() -> None:
+    """One BLAS and OpenMP thread in this process from now on, and in the processes it starts.
+
+    OpenBLAS reads :data:`THREAD_ENV` once, when it loads, and a process that has imported
+    numpy and scipy (jaxlib's LAPACK calls are scipy's OpenBLAS) has loaded it with a thread
+    per core. Under load the second thread waits for a core, spinning: a 272 x 272 LU
+    solve took 150 ms with two threads against 1.2 ms with one (2 cores, load 2.5), which
+    made every dense-path run in the tests and the perf benchmarks a hundred times slower
+    than in the suite's workers. The variables cover libraries loaded later and child
+    processes; threadpoolctl sets the limit of those already loaded.
+    """
+    os.environ.update(THREAD_ENV)
+    threadpoolctl.threadpool_limits(1)
 
 
 def thread_environment() -> dict[str, str]:

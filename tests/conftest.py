@@ -1,5 +1,6 @@
 """What every test shares: float64 JAX, set once before any test module builds an array;
-the persistent compilation cache; and the ``slow`` marker's meaning.
+the persistent compilation cache; one BLAS thread (:func:`benchmarks.pool.one_blas_thread`);
+and the ``slow`` marker's meaning.
 
 ``make test`` runs everything. ``pytest -m "not slow"`` is the quick subset: it leaves out
 the long verification runs (long horizons, large problems, whole studies) and the tests
@@ -15,6 +16,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from benchmarks import compilation  # noqa: E402  (after float64 is set)
+from benchmarks import compilation, pool  # noqa: E402  (after float64 is set)
 
 compilation.enable()
+# One BLAS thread per test process, as in the suite's workers: two test workers on two
+# cores would otherwise each spin a second OpenBLAS thread in every dense solve.
+pool.one_blas_thread()

@@ -35,6 +35,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     # XLA reads its flags when JAX starts its CPU client: before anything computes.
     os.environ.update(pool.thread_environment())
+    pool.one_blas_thread()
     import jax
 
     import integrators

@@ -38,6 +38,7 @@ def like_a_worker() -> float:
 
     compilation.enable()
     os.environ.update(pool.thread_environment())
+    pool.one_blas_thread()
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
