@@ -90,6 +90,7 @@ def test_sps_receiver_ensemble_keeps_every_lane_on_the_constraints():
         np.testing.assert_allclose(lanes[i].v_final, single.v_final, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_command_line_records_quantiles_lanes_and_report(tmp_path):
     out = tmp_path / "out"
     code = cli.main(["--problems", "pendulum", "--integrators", "rattle", "ida-ggl",

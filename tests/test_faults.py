@@ -252,6 +252,7 @@ def test_duplicate_runs_run_once(tmp_path):
 
 # --------------------------------------------------------------------------- size guard
 
+@pytest.mark.slow
 def test_an_oversized_problem_exits_2_with_one_line_in_little_memory(tmp_path):
     # A wrapper process measures the peak memory of the command line and its workers
     # alone (RUSAGE_CHILDREN of the wrapper).
@@ -329,6 +330,7 @@ def _wait_for(condition, seconds: float, what: str) -> None:
         time.sleep(0.1)
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_validation_exits_130(tmp_path):
     started = tmp_path / "building"
     slow = tmp_path / "slow_problem.py"

@@ -65,6 +65,7 @@ def test_observed_order_2_in_q_and_v(key, rho):
         assert abs(fitted_order(hs[keep], errs[keep, k]) - 2) < 0.1, (k, errs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", FORMS)
 def test_order_from_final_positions_at_t_100(key):
     # The bar, at the default rho_inf: two runs over 100 s (about 42 periods).
@@ -220,6 +221,7 @@ def test_newton_converges_at_tiny_steps(key):
     assert np.max(traj.windows["pos"]) <= 1e-13
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", FORMS)
 def test_iteration_matrix_conditioning_does_not_grow_as_h_shrinks(key):
     case = base_case("sps-receiver")

@@ -10,6 +10,7 @@ from benchmarks.metrics import reference_error
 from helpers import solve, state_error
 
 
+@pytest.mark.slow
 def test_andrews_positions_to_nine_digits():
     case, traj = solve("andrews", "lobatto3ab4", h=1e-4)
     _, scd = reference_error(case, traj)
@@ -21,6 +22,7 @@ def test_andrews_positions_to_nine_digits():
     assert np.max(traj.windows["energy"]) <= 1e-6 * case.energy_scale
 
 
+@pytest.mark.slow
 def test_andrews_positions_to_nine_digits_by_a_second_family():
     # Baumgarte-stabilised DOPRI8 (an explicit, adaptive family) at a tight tolerance.
     case, traj = solve("andrews", "baumgarte-dopri8", rtol=1e-11, atol=1e-13)
@@ -28,6 +30,7 @@ def test_andrews_positions_to_nine_digits_by_a_second_family():
     assert scd >= 9.0
 
 
+@pytest.mark.slow
 def test_car_axis_all_ten_components_of_version_b():
     from problems.car_axis import REF_LAMBDA, REF_Y
 

@@ -277,6 +277,7 @@ def test_small_chains_agree_with_newton_euler(N):
     assert worst <= 1e-10, worst
 
 
+@pytest.mark.slow
 def test_rattle_keeps_the_constraints_and_the_angular_momentum():
     case, traj = solve("rigid-chain:N=3", "rattle", 1.0, h=1e-2)
     L_z = float(case.mech.invariant_values(jnp.asarray(case.q0), jnp.asarray(case.v0))[0])

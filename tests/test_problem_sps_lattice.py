@@ -38,6 +38,7 @@ def rigid_motions(q):
             **{f"rotation {a}": np.cross(e, q).ravel() for a, e in zip("xyz", axes)}}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
 def test_symmetric_lattice_rings_follow_the_reduced_model(key):
     _, reduced = solve("sps-receiver", key, t_end=8.0, h=0.05)
@@ -75,6 +76,7 @@ def test_symmetric_lattice_carries_the_ring_multipliers_and_nothing_else():
     np.testing.assert_allclose(np.asarray(a).reshape(-1, 3)[:, 2], 0.0, atol=1e-14)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
 @pytest.mark.parametrize("coriolis", [False, True])
 def test_single_ring_lattice_is_the_ring(key, coriolis):
@@ -179,6 +181,7 @@ def test_lattice_keeps_its_invariants_with_and_without_coriolis(coriolis):
     assert np.max(traj.windows["inv:angular_momentum"]) <= 1e-12
 
 
+@pytest.mark.slow
 def test_coriolis_force_changes_the_motion():
     (_, plain), (_, spun) = small_perturbed_run(False), small_perturbed_run(True)
     # Measured 0.36 apart at t = 10, against O(1) coordinates.

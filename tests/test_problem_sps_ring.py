@@ -17,6 +17,7 @@ def run(spec, key, h, t_end=50.0):
     return case, traj
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key, h", [("rattle", 0.05), ("lobatto3ab3", 0.1)])
 def test_symmetric_ring_equals_the_reduced_model(key, h):
     _, reduced = run("sps-receiver", key, h)
@@ -42,6 +43,7 @@ def test_symmetric_ring_equals_the_reduced_model(key, h):
     assert diff[-1] > 1e-3
 
 
+@pytest.mark.slow
 def test_symmetric_ring_multipliers_are_the_reduced_one_shared_by_all_bars():
     reduced, ring = problems.make("sps-receiver"), problems.make("sps-ring")
     _, lam_red = reduced.mech.accelerations(0.0, jnp.asarray(reduced.q0), jnp.asarray(reduced.v0))
@@ -53,6 +55,7 @@ def test_symmetric_ring_multipliers_are_the_reduced_one_shared_by_all_bars():
     np.testing.assert_allclose(np.asarray(lam)[12:], 0.0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_asymmetry_grows_at_the_same_rate_from_any_seed():
     """The departure from symmetry is a physical instability, not integration error."""
     growth = []

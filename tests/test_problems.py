@@ -13,7 +13,9 @@ from problems.case import project, residuals
 LIBRARY = [
     "andrews", "car-axis", "double-pendulum", "chain:N=5", "four-bar:N=3", "bricard",
     "rigid-body", "sps-ring:N=5", "sps-ring:N=4,coriolis=true,perturb=0.1,seed=3",
-    "sps-lattice:N=3,K=3", "sps-lattice:N=4,K=2,coriolis=true,perturb=0.1,seed=3",
+    # The lattices take longer to trace than the rest together: checked by make test only.
+    pytest.param("sps-lattice:N=3,K=3", marks=pytest.mark.slow),
+    pytest.param("sps-lattice:N=4,K=2,coriolis=true,perturb=0.1,seed=3", marks=pytest.mark.slow),
 ]
 
 

@@ -67,6 +67,7 @@ def test_constraints_hold_to_round_off_at_every_step(key, problem, h, t_end):
     assert np.max(traj.windows["vel"]) <= 1e-13
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
 def test_energy_error_is_bounded_without_secular_drift(key):
     case, traj = solve(key, "pendulum", 0.01, 1000.0, n_windows=200)

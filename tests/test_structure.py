@@ -72,6 +72,7 @@ def test_structured_solve_does_not_depend_on_the_order_of_the_constraints(kind):
     assert np.max(np.abs(x - y[::-1])) <= 1e-12 * np.max(np.abs(x))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec, h, t_end", [("chain:N=16", 1e-3, 0.2), ("sps-ring:N=6", 0.01, 1.0)])
 @pytest.mark.parametrize("key", ["rattle", "lobatto3ab3", "baumgarte-rk4"])
 def test_every_fixed_step_family_gives_the_dense_result_on_the_structured_path(spec, h, t_end, key):
@@ -111,6 +112,7 @@ def test_blocks_of_a_mass_are_its_connected_components_and_solve_it():
     assert np.all(spread | (G @ W == 0))
 
 
+@pytest.mark.slow
 def test_a_mass_given_by_the_kinetic_energy_is_solved_blockwise_and_whitened():
     # rigid-chain's mass: 3N translational 1 x 1 blocks and N quaternion 4 x 4 blocks,
     # traced from T. The structured Schur complement of G L^-T equals G M^-1 G^T.
@@ -143,6 +145,7 @@ def test_a_block_mass_gives_the_dense_result_on_the_structured_path(key):
     assert np.max(np.abs(banded.v_final - dense.v_final)) <= 1e-11
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["chain:N=16", "sps-ring:N=6", "andrews"])
 def test_ida_sparse_iteration_matrix_gives_the_dense_result(spec):
     # andrews has a configuration-dependent mass: the sparse IDA path does not need a
@@ -157,6 +160,7 @@ def test_ida_sparse_iteration_matrix_gives_the_dense_result(spec):
     assert np.max(np.abs(sparse.q_final - dense.q_final)) <= 1e-10
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["sps-ring:N=40", "andrews", "bricard"])
 @pytest.mark.parametrize("form", sorted(FORMULATIONS))
 def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form):
@@ -262,6 +266,7 @@ def test_auto_choice_follows_the_structure():
     assert ring.pattern.bandwidth <= 4
 
 
+@pytest.mark.slow
 def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path():
     _, dense = solve("chain:N=16", "genalpha:linear_solver=dense", 0.2, h=1e-3)
     for kind in STRUCTURED:
@@ -272,6 +277,7 @@ def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path(
         assert np.max(traj.windows["pos"]) <= 1e-13
 
 
+@pytest.mark.slow
 def test_generalized_alpha_ggl_gives_the_dense_result_on_the_structured_path():
     # The GGL form's mu needs solves with G G^T beside G M^-1 G^T (two factors per step).
     # Measured: the paths agree to 1e-14 (q) and 4e-14 (v) here, and to 2e-14 and 6e-14
