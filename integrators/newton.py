@@ -19,6 +19,13 @@ KRYLOV_MAX_ITER = 100
 
 EPS = float(jnp.finfo(jnp.float64).eps)
 
+#: Multiple of the round-off floor within which Newton with the exact Jacobian may stop
+#: once the residual no longer halves (:func:`newton`).
+EXACT_WINDOW = 1e3
+
+#: The same for simplified Newton (:func:`newton`).
+SIMPLIFIED_WINDOW = 8.0
+
 
 class NewtonResult(NamedTuple):
     z: jax.Array
@@ -74,32 +81,46 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
 
 
 def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float,
-           max_iter: int, linear: Linear | None = None) -> NewtonResult:
+           max_iter: int, linear: Linear | None = None,
+           refactor: Callable[[jax.Array], Linear] | None = None) -> NewtonResult:
     """Solve ``residual(z) = 0`` by Newton's method.
 
     ``linear`` gives each correction; by default the exact autodiff Jacobian, densely
     (:func:`dense_linear`). A structured method passes an approximate Jacobian instead
     (simplified Newton: one factorisation per step, linear convergence), under the same
-    convergence test. Where simplified Newton does not converge within ``max_iter``
-    corrections (it stalls, diverges or meets a non-finite residual), Newton's method with
-    the exact Jacobian takes over for up to ``max_iter`` more (:func:`krylov_linear`,
-    preconditioned by the same ``linear``), from the better of ``z0`` and the last finite
-    iterate; only when that fails too has the solve failed. The structured path is then
-    as robust as the dense one, whose Newton has the exact Jacobian throughout, and a
-    step that simplified Newton solves costs no more at run time (the compiled program
-    holds both iterations: see :func:`krylov_linear` for what that costs).
+    convergence test. Where simplified Newton does not converge (it stops halving the
+    residual above its round-off floor, diverges, meets a non-finite residual or runs out
+    of its ``max_iter`` corrections), Newton's method with the exact Jacobian takes over for
+    up to ``max_iter`` more (:func:`krylov_linear`), from the better of ``z0`` and the last
+    finite iterate, preconditioned by ``refactor(z)`` at that iterate where given (the
+    approximate Jacobian factorised afresh: the frozen one may be nearly singular, as at
+    a singular configuration of a mechanism) and by ``linear`` otherwise; only when that
+    fails too has the solve failed. The structured path is then as robust as the dense one, whose Newton has
+    the exact Jacobian throughout, and a step that simplified Newton solves costs no more at
+    run time (the compiled program holds both iterations: see :func:`krylov_linear` for what
+    that costs).
 
     Converged when ``||residual(z)||_inf <= tol``. The test is on the residual, not on the
     correction, so that ``tol`` bounds the constraint violation left in the solution. Two
     more exits count as converged because no further iteration can gain anything: the
     correction is at round-off (``||dz||_inf <= 4 eps (1 + ||z||_inf)``), or the residual
-    has stopped contracting (less than halved) within a thousand times its round-off floor
-    ``max(tol, eps (1 + max_i sum_j |J_ij| |z_j|))``,
-    the rounding error of evaluating a residual whose terms have the magnitudes
-    ``|J_ij z_j|`` (``J`` the last Jacobian). Scaling with the terms, not with ``|z|``
-    alone, matters where large forces cancel (stiff springs, large multipliers): there the
-    residual cannot fall below ``eps`` times those forces. A ``tol`` below round-off (such
-    as 1e-16) therefore means "iterate to round-off".
+    has stopped contracting (less than halved) within a window of its round-off floor
+    ``eps (1 + terms)``, with ``terms`` the magnitude of the terms the residual is computed
+    from (the second value ``linear`` returns; ``max_i sum_j |J_ij| |z_j|`` with the last
+    Jacobian ``J`` by default). Scaling with the terms, not with ``|z|`` alone, matters
+    where large forces cancel (stiff springs, large multipliers): there the residual cannot
+    fall below ``eps`` times those forces. A ``tol`` below round-off (such as 1e-16)
+    therefore means "iterate to round-off"; a larger ``tol`` does not widen the window.
+
+    The window is :data:`EXACT_WINDOW` times the floor for Newton with the exact Jacobian,
+    which converges quadratically, so that a residual that stops halving has reached what
+    the arithmetic allows and the window only covers what the floor estimate leaves out.
+    It is :data:`SIMPLIFIED_WINDOW` times the floor for simplified Newton, which converges
+    linearly at a rate that nears 1 where the Jacobian moves away from the frozen one (near
+    singular configurations): a residual that stops halving there may be far above
+    round-off, so it is accepted only close to a floor that ``linear`` bounds completely
+    (including the rounding of data the residual depends on besides ``z``), and above it
+    the exact Jacobian takes over at once.
 
     Returns the iterate, whether it converged, the number of iterations (each one
     correction) and the final residual norm.
@@ -108,16 +129,17 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     def norm(x):
         return jnp.max(jnp.abs(x))
 
-    def done(z, r, r_prev, dz_norm, terms):
-        floor = jnp.maximum(tol, EPS * (1.0 + terms))
-        stalled = (norm(r) > 0.5 * r_prev) & (norm(r) <= 1e3 * floor)
+    def done(state, window):
+        z, r, r_prev, dz_norm, terms, _ = state
+        stalled = (norm(r) > 0.5 * r_prev) & (norm(r) <= window * EPS * (1.0 + terms))
         return (norm(r) <= tol) | (dz_norm <= 4 * EPS * (1.0 + norm(z))) | stalled
 
-    def iterate(state, linear, limit):
+    def iterate(state, linear, limit, window, contracting):
         def cond(state):
-            z, r, r_prev, dz_norm, terms, it = state
-            return ((~done(z, r, r_prev, dz_norm, terms)) & (it < limit)
-                    & jnp.all(jnp.isfinite(r)))
+            z, r, r_prev, _, _, it = state
+            go = (~done(state, window)) & (it < limit) & jnp.all(jnp.isfinite(r))
+            # Simplified Newton stops where it no longer halves the residual (docstring).
+            return go & (norm(r) <= 0.5 * r_prev) if contracting else go
 
         def body(state):
             z, r, _, _, _, it = state
@@ -127,21 +149,28 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
 
         return jax.lax.while_loop(cond, body, state)
 
-    def converged(state):
-        z, r, r_prev, dz_norm, terms, _ = state
-        return done(z, r, r_prev, dz_norm, terms) & jnp.all(jnp.isfinite(z))
+    def converged(state, window):
+        return done(state, window) & jnp.all(jnp.isfinite(state[0]))
 
     r0 = residual(z0)
     start = (z0, r0, jnp.inf, jnp.inf, norm(z0), 0)
-    state = iterate(start, dense_linear(residual) if linear is None else linear, max_iter)
-    if linear is not None:
-        # Simplified Newton did not converge: the exact Jacobian takes over (docstring).
-        def exact(state):
-            z, r, it = state[0], state[1], state[-1]
-            better = jnp.all(jnp.isfinite(r)) & (norm(r) < norm(r0))
-            z = jnp.where(better, z, z0)
-            restart = (z, jnp.where(better, r, r0), jnp.inf, jnp.inf, norm(z), it)
-            return iterate(restart, krylov_linear(residual, linear), it + max_iter)
+    if linear is None:
+        state = iterate(start, dense_linear(residual), max_iter, EXACT_WINDOW, False)
+        return NewtonResult(state[0], converged(state, EXACT_WINDOW), state[-1],
+                            norm(state[1]))
+    state = iterate(start, linear, max_iter, SIMPLIFIED_WINDOW, True)
 
-        state = rarely(~converged(state), lambda: exact(state), state)
-    return NewtonResult(state[0], converged(state), state[-1], norm(state[1]))
+    # Simplified Newton did not converge: the exact Jacobian takes over (docstring).
+    def exact(state):
+        z, r, it = state[0], state[1], state[-1]
+        better = jnp.all(jnp.isfinite(r)) & (norm(r) < norm(r0))
+        z = jnp.where(better, z, z0)
+        restart = (z, jnp.where(better, r, r0), jnp.inf, jnp.inf, norm(z), it)
+        precondition = linear if refactor is None else refactor(z)
+        return iterate(restart, krylov_linear(residual, precondition), it + max_iter,
+                       EXACT_WINDOW, False)
+
+    simplified = converged(state, SIMPLIFIED_WINDOW)
+    state = rarely(~simplified, lambda: exact(state), state)
+    ok = simplified | converged(state, EXACT_WINDOW)
+    return NewtonResult(state[0], ok, state[-1], norm(state[1]))

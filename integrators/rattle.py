@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
 
 from integrators.fixed import FixedStep, newton_failure
@@ -41,10 +42,20 @@ class Rattle(FixedStep):
     Newton instead: the Jacobian is replaced by ``-h^2/2 S_0`` with the Schur complement
     ``S_0 = G(q_0) M^{-1} G(q_0)^T``, whose factor is the previous step's velocity
     projection matrix, so each step factorises ``S`` once (at ``q_1``, for the velocity
-    projection) and ``G`` is never formed. Where the frozen Jacobian does not converge, Newton with the
-    exact Jacobian (matrix-free, preconditioned by ``S_0``) takes over. With forces the unknown is again
-    ``(p_{1/2}, q_1, lambda)``, and the same elimination reduces its correction to one solve
-    with ``S_0``.
+    projection) and ``G`` is never formed. Where the frozen Jacobian does not converge,
+    Newton with the exact Jacobian (matrix-free) takes over, preconditioned by ``S``
+    factorised afresh at the ``q_1`` of its first iterate (without forces; by ``S_0`` with
+    them). With forces the unknown is again ``(p_{1/2}, q_1, lambda)``, and the same
+    elimination reduces its correction to one solve with ``S_0``. Newton starts from the
+    previous step's ``mu``, the constraint force at ``q_0`` (``lambda`` is that at the
+    previous ``q_0``): a closer guess, which the frozen Jacobian's small region of
+    convergence needs where a step starts at a singular configuration. There ``S_0`` is
+    nearly singular, and the ``lambda`` that solves the step is large along the
+    constraints that are dependent at ``q_0`` (their forces nearly cancel); carried into
+    the next step, whose ``G`` no longer cancels them, it would start Newton far from the
+    solution (measured on four-bar:N=1024: Newton then found another root, off the
+    parallelogram branch). The dense path, whose exact Newton converges from there, keeps
+    ``lambda``.
 
     Parameters
     ----------
@@ -115,13 +126,22 @@ class Rattle(FixedStep):
                 p_half = p0 + 0.5 * h * (F0 - mech.GT(q0, t, lam))
                 return p_half, q0 + h * mech.H_p(q0, p_half)
 
-            def linear(lam, r):
-                # J = -h^2/2 G(q1) M^-1 G(q0)^T, approximated at q1 = q0; |J||lam| is
-                # bounded by h^2/2 ||S0|| |lam|.
-                return schur.solve(S0, r) * (2.0 / (h * h)), 0.5 * h * h * S0.norm * jnp.max(jnp.abs(lam))
+            # The residual g(q1) is computed from q1 = q0 + h M^-1 p_half: besides the
+            # terms in lam, q0's rounding reaches it as |G||q0| (coordinates of size N
+            # put g's round-off at eps N).
+            data = rounding(q0, t)
+
+            def frozen(S):
+                def linear(lam, r):
+                    # J = -h^2/2 G(q1) M^-1 G(q0)^T, approximated by -h^2/2 S; |J||lam| is
+                    # bounded by h^2/2 ||S|| |lam|.
+                    return (schur.solve(S, r) * (2.0 / (h * h)),
+                            0.5 * h * h * S.norm * jnp.max(jnp.abs(lam)) + data)
+                return linear
 
             sol = newton(lambda lam: mech.g(half(lam)[1], t + h), lam,
-                         self.newton_tol, self.newton_max_iter, linear)
+                         self.newton_tol, self.newton_max_iter, frozen(S0),
+                         lambda lam: frozen(schur.factor(half(lam)[1], t + h)))
             return (*half(sol.z), sol, 0)
 
         def position_structured(q0, p0, F0, S0, lam, t, h):
@@ -150,6 +170,13 @@ class Rattle(FixedStep):
 
         if schur.name == "dense":
             return position_separable if mech.separable else position_general
+        rows, cols = (jnp.asarray(a) for a in mech.G_pattern())
+
+        def rounding(q, t):
+            """``max_i sum_j |G_ij(q)| |q_j|``: what rounding ``q`` contributes to ``g``."""
+            terms = jnp.abs(mech.G_values(q, t)) * jnp.abs(q[cols])
+            return jnp.max(jax.ops.segment_sum(terms, rows, num_segments=mech.m))
+
         return position_separable_structured if mech.separable else position_structured
 
     def start(self, mech: Mechanics, schur, q0, v0, t0):
@@ -180,7 +207,9 @@ class Rattle(FixedStep):
         # F1 with a separable H; the general projection evaluates F once per residual.
         counts = {"n_f_evals": 1 + extra_f * (it + 1), "n_jac_evals": it + 1,
                   "n_newton": it, "n_lin_solves": it + 1}
-        return (q1, p1, F1, S1, sol.z), newton_failure(sol.converged, ok), sol.residual, counts
+        # The next step's first guess of lam: mu on the structured path (docstring).
+        guess = sol.z if schur.name == "dense" else mu
+        return (q1, p1, F1, S1, guess), newton_failure(sol.converged, ok), sol.residual, counts
 
     def observe(self, mech: Mechanics, carry):
         """``(q, H_p(q, p))``."""

@@ -28,9 +28,9 @@ Structure: the mass is given sparse and ``M^{-1}`` is dense, so above
 :data:`linalg.schur.DENSE_KKT_MAX` constraints the linear algebra is the augmented
 system's banded ``L D L^T`` (:mod:`linalg.kkt`, bandwidth 7 at any ``N``) and ``M`` is
 solved banded: memory and cost per step grow like ``N``, and the general size limit
-applies (``python -m benchmarks.perf.four_bar`` runs ``N = 4096``). Large ``N`` needs a
-Newton tolerance above the round-off of ``g``, about ``eps N`` since the tips sit at ``x_i
-= i + cos(phi)`` (that benchmark's notes).
+applies (``python -m benchmarks.perf.four_bar`` runs ``N = 4096``). The round-off of ``g``
+is about ``eps N``, since the tips sit at ``x_i = i + cos(phi)``; Newton's convergence test
+counts it (that benchmark's notes).
 
 Initial values (our choice, documented): the specification's initial angle was not
 available here; the cranks start vertical (``phi_0 = pi / 2`` from the ground line, as in

@@ -8,26 +8,26 @@ What runs
     (:data:`G_BAR`): the largest N finishes (``ok``), with max ``|g|`` at most
     :data:`G_BAR` and a final-state error at most that of the smallest N.
 
-    Newton's tolerance is relative to the round-off of the constraints: the tips sit at
-    ``x_i = i + cos(phi)``, so ``g`` is evaluated from coordinates of size ``N`` and its
-    rounding error is about ``eps N``; rattle's absolute default of 1e-16 (iterate to
-    round-off) cannot be met there once ``eps N`` passes Newton's round-off floor (at N =
-    4096 the residual stalls at 4.5e-13 and the first step fails). Every point therefore
-    takes ``newton_tol = 8 eps (N + 1)`` (:func:`newton_tol`): 7.3e-14 at N = 40, 7.3e-12
-    at N = 4096.
+    Every point runs rattle's default ``newton_tol`` (1e-16: iterate to round-off). The tips
+    sit at ``x_i = i + cos(phi)``, so ``g`` is evaluated from coordinates of size ``N`` and
+    its round-off is about ``eps N`` (4.5e-13 at N = 4096); Newton's round-off floor counts
+    that (:func:`integrators.newton.newton`, :class:`integrators.rattle.Rattle`), so no
+    per-N tolerance is needed.
 
-    Measured (2 cores, load 4.8 at start, 3.2 at end): N = 40 (dense) ok, max ``|g|``
-    7.1e-14, error 1.15e-4, 1.0 ms per step, 519 MiB; N = 4096 (``kkt``) fails at t = 2.70,
-    max ``|g|`` 4.8e-9, 16 ms per step (4.6 ms at load 1.5), 980 MiB: the bar is missed.
-    The linear algebra is not what fails (near the singular configurations the ``kkt``
-    solves have the dense residuals, ``tests/test_kkt.py``); simplified Newton is. Across a
-    singular configuration ``G``'s entries along the cranks change by O(1) relatively within
-    a step, so the Schur complement frozen at the step's start contracts slowly (a factor
-    0.63 per iteration at N = 40), and Newton's stall exit
-    (:func:`integrators.newton.newton`) accepts the residual once it is within a thousand
-    times ``max(tol, round-off)``: 7e-9 at N = 4096, enough to leave the parallelogram
-    branch before the third crossing. With the default tolerance (1e-16) the first step
-    fails instead, its residual stalling at 4.5e-13, above the stall window.
+    Measured (2 cores, load 2.65 at start, 2.67 at end): N = 40 (dense) ok, max ``|g|``
+    1.4e-14, error 1.15e-4, 2.17 Newton iterations per step, 0.43 ms per step, 497 MiB;
+    N = 4096 (``kkt``) ok, max ``|g|`` 2.3e-11, error 1.06e-4, 2.36 iterations per step,
+    7.6 ms per step, 1109 MiB: the bar is met. Before, N = 4096 failed: at the first step
+    with the default tolerance (the residual stalled at 4.5e-13, above a floor that did not
+    see ``|q|``), and at t = 2.70 with ``newton_tol = 8 eps (N + 1)``, because the stall
+    exit then accepted residuals up to a thousand times that tolerance (7e-9). What the
+    crossings need (measured step by step at N = 1024, where the step starting at the
+    singular configuration has ``S_0`` with a pivot of 7e-12 relative): simplified Newton
+    diverges there and exact Newton takes over; its ``lambda`` is large (6e7) along the
+    constraints that are dependent at ``q_0``, and carried as the next step's first guess
+    it led Newton to a root off the parallelogram branch (the cranks stayed horizontal).
+    Starting each step from the previous ``mu`` instead crosses on the branch, with 3 to 4
+    iterations per step against 8 to 9.
 
     ``--crossover`` instead times :data:`CROSSOVER_STEPS` steps of the dense and the
     ``kkt`` path for each ``--n`` (the measurement behind
@@ -69,11 +69,6 @@ CROSSOVER_STEPS = 1000
 LIMIT = 3600.0
 
 
-def newton_tol(N: int) -> float:
-    """``8 eps (N + 1)``: Newton's tolerance above the round-off of ``g`` at size N."""
-    return 8.0 * float(np.finfo(np.float64).eps) * (N + 1)
-
-
 def point(N: int, path: str, t_end: float) -> dict:
     """One run of rattle on ``four-bar:N`` with ``linear_solver=path``; its figures."""
     import integrators
@@ -82,8 +77,8 @@ def point(N: int, path: str, t_end: float) -> dict:
 
     start = time.perf_counter()
     case = problems.make(f"four-bar:N={N}").with_t_end(t_end)
-    solve = integrators.make("rattle", h=H, newton_tol=newton_tol(N),
-                             linear_solver=path).prepare(case, Grid(case.t0, case.t_end))
+    solve = integrators.make("rattle", h=H, linear_solver=path).prepare(
+        case, Grid(case.t0, case.t_end))
     setup = time.perf_counter() - start
     start = time.perf_counter()
     traj = solve()
@@ -150,7 +145,7 @@ def main(argv=None) -> int:
             for path in ("dense", "kkt"):
                 show(run_point(N, path, CROSSOVER_STEPS * H))
         return 0
-    print(f"four-bar:N, rattle at h = {H:g} to t = {args.t_end:g}, newton_tol = 8 eps (N + 1); "
+    print(f"four-bar:N, rattle at h = {H:g} to t = {args.t_end:g}; "
           f"load average at start {load:.2f} on {os.cpu_count()} cores")
     print(HEADER)
     rows = []

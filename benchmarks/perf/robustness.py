@@ -5,7 +5,7 @@ coordinates, 597 constraints) at h = 0.005 to t = 20 twice in one process: on th
 path (``linear_solver=dense``: Newton with the exact Jacobian, LU under the rank policy)
 and on the structured one (``auto``, which picks SuperLU here: simplified Newton with
 ``G M^-1 G^T`` frozen at the step's start, and Newton with the exact Jacobian by
-preconditioned GMRES where it does not converge; :func:`integrators.newton.newton`).
+preconditioned BiCGSTAB where it does not converge; :func:`integrators.newton.newton`).
 Every half period the rings swing through flat, the bar forces peak and ``G M^-1 G^T``
 comes close to singular (at t = 12.18 it is numerically singular), which is where the
 frozen Jacobian fails.
