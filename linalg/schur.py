@@ -70,12 +70,11 @@ DENSE_MAX = 8
 
 #: Largest number of constraints solved densely by default where the mass is constant but
 #: not diagonal. Measured with ``python -m benchmarks.perf.four_bar --crossover`` (rattle,
-#: 1000 steps of four-bar:N, load 4.7 on 2 cores): ``kkt`` is faster at every size (N = 2:
-#: 0.017 against 0.021 ms per step; N = 16: 0.059 against 0.117), but its simplified Newton
-#: (the Schur complement frozen at the step's start) leaves ``|g|`` at up to a thousand times
-#: Newton's tolerance across the singular configurations (2.6e-11 against 2.1e-14 at N =
-#: 16), where the dense path's exact Newton reaches round-off. Dense is kept while its step
-#: is cheap, under a millisecond (four-bar up to N = 63, bricard).
+#: 1000 steps of four-bar:N, load 1 on 2 cores): the two paths leave the same ``|g|``
+#: (7.1e-15 at N = 16, 2.8e-14 at N = 64) and ``kkt`` is faster from N = 16 on (0.046
+#: against 0.090 ms per step; 0.13 against 1.36 at N = 64; at N = 2 0.013 against 0.011).
+#: Dense is kept while its step is well under a millisecond (four-bar up to N = 63,
+#: bricard): there Newton has the exact Jacobian at every iteration, with no fallback.
 DENSE_KKT_MAX = 128
 
 #: Names a run may ask for.
