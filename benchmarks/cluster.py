@@ -267,7 +267,7 @@ class Cluster:
                     time.sleep(POLL)
                 for future in [f for f in running if f.done()]:
                     task, worker = running.pop(future)
-                    report(task, _outcome(future, worker))
+                    report(task, _outcome(future, worker, self.client.nthreads))
                 gone = set(self.client.nthreads())
                 for future, (task, worker) in list(running.items()):
                     if worker not in gone:
@@ -304,10 +304,24 @@ class Cluster:
         self.client = self.local = None
 
 
-def _outcome(future: distributed.Future, worker: str) -> Outcome:
-    """How a finished Dask future's task ended."""
-    try:
-        return future.result()
-    except Exception as exc:  # the task could not be carried out on the worker
-        return Outcome("fail", message=one_line(
-            f"Dask worker {worker}: {type(exc).__name__}: {exc}"))
+def _outcome(future: distributed.Future, worker: str,
+             present: Callable[[], dict]) -> Outcome:
+    """How a finished Dask future's task ended; ``present()`` names the workers still there.
+
+    A result lives on the worker that computed it until it is gathered. If that worker dies
+    in between, Dask reschedules the task, which is pinned to the dead worker and so would
+    never run again: the gather would wait for ever (seen once in ``tests/test_cluster.py``
+    with a worker killed right after its run). The gather is therefore retried every
+    :data:`POLL` seconds only while the worker is present.
+    """
+    while True:
+        try:
+            return future.result(timeout=POLL)
+        except TimeoutError:
+            if worker not in present():
+                future.cancel()
+                return Outcome("died", message=f"the Dask worker {worker} left the cluster "
+                               f"before its result was collected", phase="its run")
+        except Exception as exc:  # the task could not be carried out on the worker
+            return Outcome("fail", message=one_line(
+                f"Dask worker {worker}: {type(exc).__name__}: {exc}"))

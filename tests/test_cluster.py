@@ -189,3 +189,24 @@ def test_a_scheduler_and_workers_survive_a_killed_worker_and_resume(tmp_path, sc
     assert sorted(r["status"] for r in rows) == ["ok"] * 4 + ["timeout"]
     redone = stored(db, "SELECT integrator FROM runs WHERE session = 2")
     assert len(redone) == unfinished  # the lost run and the timeout, nothing finished
+
+
+def test_a_result_lost_with_its_worker_is_a_died_run_not_a_hang():
+    # The worker computed the run and died before its result was gathered: Dask reschedules
+    # the task on the dead worker alone, so the gather would never return.
+    from benchmarks.cluster import _outcome
+
+    class Lost:
+        cancelled = False
+
+        def result(self, timeout=None):
+            time.sleep(timeout)
+            raise TimeoutError
+
+        def cancel(self):
+            self.cancelled = True
+
+    future, present = Lost(), iter([{"tcp://a": 1}, {}])
+    outcome = _outcome(future, "tcp://a", lambda: next(present))
+    assert outcome.state == "died" and "left the cluster" in outcome.message
+    assert future.cancelled
