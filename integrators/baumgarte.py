@@ -345,7 +345,7 @@ class BaumgarteRK(BaumgarteBase, FixedStep):
         Key of :data:`SOLVERS` (the embedded error estimate, if any, is unused).
     alpha, beta : float
         Baumgarte damping and stiffness (1/s).
-    linear_solver : {"auto", "dense", "banded", "superlu"}
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
         How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 
@@ -432,7 +432,7 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
         Largest step; ``inf`` for none.
     max_steps : int
         Accepted steps allowed over the run; reaching it fails the run.
-    linear_solver : {"auto", "dense", "banded", "superlu"}
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
         How ``G M^{-1} G^T`` is solved (:func:`linalg.schur.choose`).
     """
 

@@ -276,7 +276,7 @@ class GeneralizedAlpha(AlphaMethod):
         :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
-    linear_solver : {"auto", "dense", "banded", "superlu"}
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
         Linear algebra (:func:`linalg.schur.choose`): large sparse systems use simplified
         Newton through ``G M^{-1} G^T`` and, for ``ggl``, ``G G^T`` (:meth:`simplified`).
     """

@@ -73,7 +73,7 @@ class LobattoIIIAIIIB(FixedStep):
         converges linearly, at a rate that grows with ``h`` times the rate of change of
         ``G`` along the motion (about 0.3 for sps-ring at ``h = 0.1``: 20 iterations to
         round-off), hence the margin.
-    linear_solver : {"auto", "dense", "banded", "superlu"}
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
         How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 

@@ -71,7 +71,7 @@ class Rattle(FixedStep):
         converges linearly, slowly where the constraint forces are large (on
         sps-lattice:N=16,K=8 at h = 0.005, where the rings flip through flat and the bar
         forces peak, it needed more than 20 iterations), hence the margin.
-    linear_solver : {"auto", "dense", "banded", "superlu"}
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
         How systems with ``G M^{-1} G^T`` are solved (:func:`linalg.schur.choose`).
     """
 
