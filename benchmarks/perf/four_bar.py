@@ -56,7 +56,7 @@ import time
 
 import numpy as np
 
-from benchmarks.perf.processes import like_a_worker, peak_rss, run_process
+from benchmarks.perf.processes import like_a_worker, peak_rss, run_process, timed_run
 from benchmarks.records import CommandParser
 
 #: The bar on the largest constraint residual at the largest N.
@@ -73,16 +73,12 @@ def point(N: int, path: str, t_end: float) -> dict:
     """One run of rattle on ``four-bar:N`` with ``linear_solver=path``; its figures."""
     import integrators
     import problems
-    from integrators.base import Grid
 
     start = time.perf_counter()
     case = problems.make(f"four-bar:N={N}").with_t_end(t_end)
-    solve = integrators.make("rattle", h=H, linear_solver=path).prepare(
-        case, Grid(case.t0, case.t_end))
-    setup = time.perf_counter() - start
-    start = time.perf_counter()
-    traj = solve()
-    wall = time.perf_counter() - start
+    made = time.perf_counter() - start
+    traj, setup, wall = timed_run(case, integrators.make("rattle", h=H, linear_solver=path))
+    setup += made
     q_ref, v_ref = case.reference.solution(traj.t_final)
     steps = max(1, traj.counts["n_steps"])
     return {"N": N, "path": path, "linear_solver": traj.linear_solver,

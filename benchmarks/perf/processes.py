@@ -42,6 +42,19 @@ def like_a_worker() -> float:
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
+def timed_run(case, method):
+    """``(trajectory, setup_s, wall_s)`` of ``method`` on ``case`` over its horizon: set-up
+    (compilation included) and the solve timed apart."""
+    from integrators.base import Grid
+
+    start = time.perf_counter()
+    solve = method.prepare(case, Grid(case.t0, case.t_end))
+    setup = time.perf_counter() - start
+    start = time.perf_counter()
+    traj = solve()
+    return traj, setup, time.perf_counter() - start
+
+
 def peak_rss(pid: int | str = "self") -> int | None:
     """Peak resident set of process ``pid`` since its program started (``VmHWM``, bytes);
     None where ``/proc`` does not give it."""

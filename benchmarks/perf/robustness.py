@@ -27,11 +27,10 @@ Usage::
 from __future__ import annotations
 
 import os
-import time
 
 import numpy as np
 
-from benchmarks.perf.processes import like_a_worker
+from benchmarks.perf.processes import like_a_worker, timed_run
 from benchmarks.records import CommandParser
 
 SPEC = "sps-lattice:N=16,K=8,perturb=0.01"
@@ -45,16 +44,9 @@ def measure(path: str, t_end: float, h: float) -> dict:
     import integrators
     import problems
     from benchmarks.drift import classify
-    from integrators.base import Grid
 
     case = problems.make(SPEC).with_t_end(t_end)
-    start = time.perf_counter()
-    solve = integrators.make("rattle", h=h, linear_solver=path).prepare(
-        case, Grid(case.t0, case.t_end))
-    setup = time.perf_counter() - start
-    start = time.perf_counter()
-    traj = solve()
-    wall = time.perf_counter() - start
+    traj, setup, wall = timed_run(case, integrators.make("rattle", h=h, linear_solver=path))
     w = traj.windows
     return {"path": path, "status": str(traj.status), "message": traj.message,
             "t_final": traj.t_final, "pos": np.max(w["pos"]), "vel": np.max(w["vel"]),
