@@ -182,6 +182,13 @@ class Integrator:
         solves = [self.prepare(case.with_initial(q, v), grid) for q, v in zip(q0s, v0s)]
         return lambda: [solve() for solve in solves]
 
+    def check_choice(self, option: str, choices) -> None:
+        """Raise ``ValueError`` unless the value of ``option`` is one of ``choices`` (names)."""
+        value = getattr(self, option)
+        if value not in choices:
+            raise ValueError(f"{type(self).__name__}: {option} = {value!r} is not one of "
+                             f"{', '.join(choices)}")
+
     def check(self) -> None:
         """Validate the options; raise ``ValueError`` naming the bad one and where the class
         is defined."""

@@ -298,9 +298,7 @@ class BaumgarteBase(Integrator):
     def check(self) -> None:
         super().check()
         name = type(self).__name__
-        if self.solver not in SOLVERS:
-            raise ValueError(f"{name}: solver = {self.solver!r} is not one of "
-                             f"{', '.join(SOLVERS)}")
+        self.check_choice("solver", SOLVERS)
         for option in ("alpha", "beta"):
             value = getattr(self, option)
             if not (math.isfinite(value) and value >= 0):

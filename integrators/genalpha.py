@@ -86,10 +86,7 @@ class AlphaMethod(FixedStep):
 
     def check(self) -> None:
         super().check()
-        name = type(self).__name__
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"{name}: formulation = {self.formulation!r} must be one "
-                             f"of {', '.join(FORMULATIONS)}")
+        self.check_choice("formulation", FORMULATIONS)
 
     def equations(self, mech: Mechanics, state: State, t, h):
         """The scaled step equations from ``state`` at ``t``.

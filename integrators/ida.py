@@ -324,17 +324,11 @@ class IDA(Integrator):
     def check(self) -> None:
         super().check()
         name = type(self).__name__
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"{name}: formulation = {self.formulation!r} is not one of "
-                             f"{', '.join(FORMULATIONS)}")
-        if self.jacobian not in JACOBIANS:
-            raise ValueError(f"{name}: jacobian = {self.jacobian!r} is not one of "
-                             f"{', '.join(JACOBIANS)}")
+        self.check_choice("formulation", FORMULATIONS)
+        self.check_choice("jacobian", JACOBIANS)
         if self.jacobian != "autodiff" and self.linsolver == "sparse":
             raise ValueError(f"{name}: linsolver = 'sparse' needs jacobian = 'autodiff'")
-        if self.linsolver not in LINEAR_SOLVERS:
-            raise ValueError(f"{name}: linsolver = {self.linsolver!r} is not one of "
-                             f"{', '.join(LINEAR_SOLVERS)}")
+        self.check_choice("linsolver", LINEAR_SOLVERS)
         if not 1 <= self.max_order <= 5:
             raise ValueError(f"{name}: max_order = {self.max_order} must lie in 1..5")
         for option in ("max_steps", "max_nonlin_iters", "max_conv_fails"):

@@ -608,12 +608,8 @@ class RadauIIA(Integrator):
     def check(self) -> None:
         super().check()
         name = type(self).__name__
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"{name}: formulation = {self.formulation!r} is not one of "
-                             f"{', '.join(FORMULATIONS)}")
-        if self.linear_solver not in ("auto", "dense"):
-            raise ValueError(f"{name}: linear_solver = {self.linear_solver!r} is not one of "
-                             "auto, dense")
+        self.check_choice("formulation", FORMULATIONS)
+        self.check_choice("linear_solver", ("auto", "dense"))
         if not 0 < self.safety <= 1:
             raise ValueError(f"{name}: safety = {self.safety} must lie in (0, 1]")
         if not (self.first_step > 0 and self.max_step > 0 and self.max_steps >= 1):
