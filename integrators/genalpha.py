@@ -127,7 +127,7 @@ class AlphaMethod(FixedStep):
         z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
         return residual, z0, advance
 
-    def simplified(self, mech: Mechanics, schur, state: State, t):
+    def simplified(self, mech: Mechanics, schur, state: State, t, h):
         """Simplified Newton's correction on the structured path.
 
         The iteration matrix frozen at ``q_n`` without the force Jacobian and the
@@ -148,6 +148,13 @@ class AlphaMethod(FixedStep):
         gram = mech.gram(schur.name) if ggl else None
         P0 = gram.factor(q, t) if ggl else None
 
+        # The scaled unknowns are small (beta h^2 a); the constraint rows are computed from
+        # q and v, whose rounding reaches them as |G||q| and (beta h / gamma) |G||v|
+        # (Mechanics.rounding): a long chain's coordinates put that far above eps |z|.
+        data = mech.rounding(q, t)
+        if ggl:
+            data = jnp.maximum(data, coef.beta * h / coef.gamma * mech.rounding(q, t, state.v))
+
         def linear(z, r):
             r_M, r_g = r[:n], r[n:n + m]
             r_v = r[n + m:] if ggl else r_g
@@ -155,7 +162,7 @@ class AlphaMethod(FixedStep):
             dLam = schur.solve(S0, cm * r_v - mech.G_times(q, t, MinvR))
             dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
             parts = [dx, dLam] + ([gram.solve(P0, r_v - r_g)] if ggl else [])
-            return jnp.concatenate(parts), jnp.max(jnp.abs(z))
+            return jnp.concatenate(parts), jnp.maximum(jnp.max(jnp.abs(z)), data)
 
         return linear, S0.ok & P0.ok if ggl else S0.ok
 
@@ -168,7 +175,7 @@ class AlphaMethod(FixedStep):
         """One step (:class:`integrators.fixed.FixedStep`)."""
         residual, z0, advance = self.equations(mech, state, t, h)
         linear, ok = (None, True) if schur.name == "dense" else self.simplified(
-            mech, schur, state, t)
+            mech, schur, state, t, h)
         sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
         it = sol.iterations
         # One force evaluation per residual; the ggl form evaluates G(q_n) once more.

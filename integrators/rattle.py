@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 
 from integrators.fixed import FixedStep, newton_failure
@@ -129,7 +128,7 @@ class Rattle(FixedStep):
             # The residual g(q1) is computed from q1 = q0 + h M^-1 p_half: besides the
             # terms in lam, q0's rounding reaches it as |G||q0| (coordinates of size N
             # put g's round-off at eps N).
-            data = rounding(q0, t)
+            data = mech.rounding(q0, t)
 
             def frozen(S):
                 def linear(lam, r):
@@ -170,13 +169,6 @@ class Rattle(FixedStep):
 
         if schur.name == "dense":
             return position_separable if mech.separable else position_general
-        rows, cols = (jnp.asarray(a) for a in mech.G_pattern())
-
-        def rounding(q, t):
-            """``max_i sum_j |G_ij(q)| |q_j|``: what rounding ``q`` contributes to ``g``."""
-            terms = jnp.abs(mech.G_values(q, t)) * jnp.abs(q[cols])
-            return jnp.max(jax.ops.segment_sum(terms, rows, num_segments=mech.m))
-
         return position_separable_structured if mech.separable else position_structured
 
     def start(self, mech: Mechanics, schur, q0, v0, t0):

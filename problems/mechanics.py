@@ -324,6 +324,18 @@ class Mechanics:
         compressed = asdex.compressed_jacobian_from_coloring(lambda x: self.g(x, t), coloring)(q)
         return asdex.decompress_data(compressed, coloring)
 
+    def rounding(self, q: Array, t: Array, x: Array | None = None) -> Array:
+        """``max_i sum_j |G_ij(q, t)| |x_j|`` (``x = q`` by default), from ``G``'s entries.
+
+        The round-off that rounding ``x`` puts into ``G x``, and for ``x = q`` into ``g(q)``:
+        with coordinates of size ``L`` (a long chain's far end) ``g`` cannot be computed to
+        better than about ``eps L |G|``, which a Newton solve's stall test must know.
+        """
+        rows, cols = self.G_pattern()
+        x = q if x is None else x
+        terms = jnp.abs(self.G_values(q, t)) * jnp.abs(x[jnp.asarray(cols)])
+        return jnp.max(jax.ops.segment_sum(terms, jnp.asarray(rows), num_segments=self.m))
+
     @cached_property
     def whitened_coloring(self) -> asdex.ColoredPattern:
         """The pattern of ``G L^{-T}`` (``M = L L^T`` blockwise: :attr:`mass_blocks`) and a
