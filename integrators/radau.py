@@ -28,6 +28,7 @@ from integrators.ida import consistent_values, ggl_residual
 from integrators.loop import CACHE_SIZE, put
 from integrators.record import Recorder, batch_length
 from linalg.dense import lu_factor, lu_solve
+from linalg.schur import KINDS
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -197,9 +198,9 @@ class Params(NamedTuple):
 class LoopState(NamedTuple):
     """What the loop carries between step attempts.
 
-    ``J, B`` are the iteration blocks at the point where they were last evaluated
-    (``fresh`` while that point is the current ``y``), ``E1, E2`` the factorisations of
-    the real and the complex iteration matrix for the step ``h_lu``; ``Z, h_z`` the stage
+    ``frozen`` is what the iteration matrices were last evaluated from (``fresh`` while
+    that is the current ``y``; :class:`DenseStages`, :class:`SchurStages`), ``factors``
+    their factorisations for the step ``h_lu``; ``Z, h_z`` the stage
     increments and step of the last accepted step (the starting values of the next come
     from its collocation polynomial); ``f0 = F(t, y)``, ``w = y'(t)``; ``work`` the counts
     of :data:`WORK`; ``h_acc, err_acc`` the last accepted step and its error (the
@@ -212,10 +213,8 @@ class LoopState(NamedTuple):
     y: jax.Array
     w: jax.Array
     f0: jax.Array
-    J: jax.Array
-    B: jax.Array
-    E1: tuple
-    E2: tuple
+    frozen: tuple
+    factors: tuple
     h_lu: jax.Array
     fresh: jax.Array
     need_jac: jax.Array
@@ -264,6 +263,129 @@ def _factor(J, B, h, tab: RadauTableau):
     return E1, E2
 
 
+def _real_linear(f):
+    """A real linear map ``f`` extended to complex arguments, part by part: ``S``, ``M``,
+    ``G`` and ``P`` are real, the complex pair's shift is not."""
+
+    def apply(x):
+        return f(x.real) + 1j * f(x.imag) if jnp.iscomplexobj(x) else f(x)
+
+    return apply
+
+
+class DenseStages(NamedTuple):
+    """The stage systems' linear algebra on the dense path: the exact iteration blocks
+    ``J, B`` (frozen), the LU of ``gamma/h B + J`` and of ``(alpha - i beta)/h B + J``
+    (refactorised when ``h`` changes), residual floors from ``|J||y| + |B||y'|``."""
+
+    R: Callable
+    tab: RadauTableau
+
+    #: The factorisations depend on ``h``.
+    scaled = True
+
+    def freeze(self, t, y, w):
+        return iteration_blocks(self.R, t, y, w)
+
+    def factor(self, frozen, h):
+        return _factor(*frozen, h, self.tab)
+
+    def solve_real(self, frozen, factors, h, r):
+        return lu_solve(factors[0], r)
+
+    def solve_complex(self, frozen, factors, h, r):
+        return lu_solve(factors[1], r)
+
+    def floor(self, frozen, t, y, w):
+        J, B = frozen
+        return EPS * (1.0 + jnp.abs(J) @ jnp.abs(y) + jnp.abs(B) @ jnp.abs(w))
+
+
+class SchurStages(NamedTuple):
+    """The stage systems' linear algebra on the structured path (large sparse systems,
+    :meth:`Mechanics.schur`): simplified Newton with the iteration matrix frozen at
+    ``q_n`` without the force Jacobian and the derivatives of ``M``, ``G^T lambda`` and
+    ``G v`` (as :meth:`integrators.genalpha.AlphaMethod.simplified`), for a shift ``c``
+    (``gamma/h``, or ``(alpha - i beta)/h`` for the complex pair).
+
+    Index 3, ``[[c I, -I, 0], [0, c M, G^T], [G, 0, 0]] (dq, dv, dlam) = (r_q, r_v, r_g)``:
+    ``S dlam = G M^{-1} r_v - c^2 r_g + c G r_q`` with ``S = G M^{-1} G^T``, then
+    ``dv = M^{-1} (r_v - G^T dlam) / c`` and ``dq = (r_q + dv) / c``. GGL adds ``G^T dmu``
+    to the first row and ``G dv = r_w`` as the last: ``S dlam = G M^{-1} r_v - c r_w``, ``dv``
+    as before, ``P dmu = G r_q + r_w - c r_g`` with the Gram matrix ``P = G G^T``, and
+    ``dq = (r_q + dv - G^T dmu) / c``. ``S`` and ``P`` do not depend on ``c``: one
+    factorisation of each serves the real and the complex system (its real and imaginary
+    parts solved apart) and every step size, until Newton asks for a fresh Jacobian.
+    Residual floors are per block: ``eps`` times the largest term of the block's rows.
+    """
+
+    mech: Mechanics
+    linear_solver: str
+    ggl: bool
+
+    scaled = False
+
+    def freeze(self, t, y, w):
+        return y[:self.mech.n], t
+
+    def factor(self, frozen, h):
+        q, t = frozen
+        schur = self.mech.schur(self.linear_solver)
+        factors = (schur.factor(q, t),)
+        if self.ggl:
+            factors += (self.mech.gram(schur.name).factor(q, t),)
+        return factors
+
+    def _solve(self, frozen, factors, c, r):
+        mech, (q, t) = self.mech, frozen
+        n, m = mech.n, mech.m
+        schur = mech.schur(self.linear_solver)
+        M_inv = _real_linear(partial(mech.solve_mass, q))
+        G = _real_linear(partial(mech.G_times, q, t))
+        GT = _real_linear(partial(mech.GT, q, t))
+        S_inv = _real_linear(partial(schur.solve, factors[0]))
+        r_q, r_v, r_g = r[:n], r[n:2 * n], r[2 * n:2 * n + m]
+        Minv_rv = M_inv(r_v)
+        if self.ggl:
+            r_w = r[2 * n + m:]
+            dlam = S_inv(G(Minv_rv) - c * r_w)
+        else:
+            dlam = S_inv(G(Minv_rv) - c * c * r_g + c * G(r_q))
+        dv = (Minv_rv - M_inv(GT(dlam))) / c
+        if not self.ggl:
+            return jnp.concatenate([(r_q + dv) / c, dv, dlam])
+        P_inv = _real_linear(partial(mech.gram(schur.name).solve, factors[1]))
+        dmu = P_inv(G(r_q) + r_w - c * r_g)
+        return jnp.concatenate([(r_q + dv - GT(dmu)) / c, dv, dlam, dmu])
+
+    def solve_real(self, frozen, factors, h, r):
+        return self._solve(frozen, factors, radau_iia().gamma / h, r)
+
+    def solve_complex(self, frozen, factors, h, r):
+        tab = radau_iia()
+        return self._solve(frozen, factors, (tab.alpha - 1j * tab.beta) / h, r)
+
+    def floor(self, frozen, t, y, w):
+        mech = self.mech
+        n, m = mech.n, mech.m
+        q, v, lam = y[:n], y[n:2 * n], y[2 * n:2 * n + m]
+        top = jnp.max(jnp.abs(w[:n])) + jnp.max(jnp.abs(v))
+        dyn = (jnp.max(jnp.abs(mech.mass_times(q, w[n:2 * n])))
+               + jnp.max(jnp.abs(mech.force(t, q, v))) + jnp.max(jnp.abs(mech.GT(q, t, lam))))
+        blocks = [jnp.full(n, top), jnp.full(n, dyn), jnp.full(m, mech.rounding(q, t))]
+        if self.ggl:
+            blocks.append(jnp.full(m, mech.rounding(q, t, v)))
+        return EPS * (1.0 + jnp.concatenate(blocks))
+
+
+def stages(mech: Mechanics, formulation: str, linear_solver: str):
+    """The stage systems' linear algebra: :class:`SchurStages` where
+    :meth:`Mechanics.schur` chooses a structured solver, :class:`DenseStages` otherwise."""
+    if mech.schur(linear_solver).name == "dense":
+        return DenseStages(FORMULATIONS[formulation].residual(mech), radau_iia())
+    return SchurStages(mech, linear_solver, formulation == "ggl")
+
+
 def _extrapolate(Z, r, c):
     """Starting increments for the next step from the collocation polynomial ``P`` of the
     last (``P(0) = 0``, ``P(c_k) = Z_k``): ``P(1 + c_i r) - P(1)``, ``r`` the ratio of the
@@ -276,30 +398,31 @@ def _extrapolate(Z, r, c):
     return L @ Z - Z[2]
 
 
-@partial(jax.jit, static_argnames=("mech", "formulation"))
-def initial_state(y0, yp0, t0, params: Params, *, mech: Mechanics,
-                  formulation: str) -> LoopState:
+@partial(jax.jit, static_argnames=("mech", "formulation", "linear_solver"))
+def initial_state(y0, yp0, t0, params: Params, *, mech: Mechanics, formulation: str,
+                  linear_solver: str) -> LoopState:
     """The loop state at ``t0``: the iteration blocks and their factorisations for the
     first step, ``F(t0, y0)``."""
-    tab, R = radau_iia(), FORMULATIONS[formulation].residual(mech)
+    R, lin = FORMULATIONS[formulation].residual(mech), stages(mech, formulation, linear_solver)
     N = y0.shape[0]
-    J, B = iteration_blocks(R, t0, y0, yp0)
+    frozen = lin.freeze(t0, y0, yp0)
     h0 = jnp.minimum(jnp.minimum(params.first_step, params.max_step), params.t_end - t0)
-    E1, E2 = _factor(J, B, h0, tab)
+    factors = lin.factor(frozen, h0)
     f0 = -R(t0, y0, jnp.zeros(N))
     # One residual, one Jacobian and one pair of decompositions so far.
     work = jnp.array([0, 1, 1, 0, 0, 1], jnp.int64)
     false, true = jnp.asarray(False), jnp.asarray(True)
-    return LoopState(t0, h0, y0, yp0, f0, J, B, E1, E2, h0, true, false, jnp.zeros((3, N)),
+    return LoopState(t0, h0, y0, yp0, f0, frozen, factors, h0, true, false, jnp.zeros((3, N)),
                      h0, jnp.asarray(1.0), h0, jnp.asarray(1e-2), true, false,
                      jnp.zeros((), jnp.int64), work, jnp.zeros((), jnp.int32),
                      jnp.zeros((), jnp.int32))
 
 
-def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: int):
+def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: int,
+             linear_solver: str):
     """One step attempt: ``(state, accepted)``."""
     tab, form = radau_iia(), FORMULATIONS[formulation]
-    R = form.residual(mech)
+    R, lin = form.residual(mech), stages(mech, formulation, linear_solver)
     n, N = mech.n, st.y.shape[0]
     A_inv = jnp.asarray(tab.A_inv)
     T, T_inv = jnp.asarray(tab.T), jnp.asarray(tab.T_inv)
@@ -315,10 +438,9 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     last = t + 1.0001 * st.h >= p.t_end
     h = jnp.where(last, p.t_end - t, st.h)
     t1 = jnp.where(last, p.t_end, t + h)
-    J, B = jax.lax.cond(st.need_jac, lambda: iteration_blocks(R, t, y, st.w),
-                        lambda: (st.J, st.B))
-    refactor = st.need_jac | (h != st.h_lu)
-    E1, E2 = jax.lax.cond(refactor, lambda: _factor(J, B, h, tab), lambda: (st.E1, st.E2))
+    frozen = jax.lax.cond(st.need_jac, lambda: lin.freeze(t, y, st.w), lambda: st.frozen)
+    refactor = st.need_jac | ((h != st.h_lu) & lin.scaled)
+    factors = jax.lax.cond(refactor, lambda: lin.factor(frozen, h), lambda: st.factors)
     fresh = st.fresh | st.need_jac
     # Components of index k count with h^(k-1) in the error and Newton norms.
     h_index = h ** exponent
@@ -326,7 +448,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     Z0 = jnp.where(st.first, jnp.zeros((3, N)), _extrapolate(st.Z, h / st.h_z, tab.c))
     # Round-off floors, row by row (newton.py's rule): eps times the magnitude of the
     # terms of each residual row; residuals are measured in these units.
-    floor = EPS * (1.0 + jnp.abs(J) @ jnp.abs(y) + jnp.abs(B) @ jnp.abs(st.w))
+    floor = lin.floor(frozen, t, y, st.w)
     faccon0 = jnp.maximum(st.faccon, EPS) ** 0.8
 
     def body(s):
@@ -339,8 +461,8 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         # multipliers, which no scaled test would pass at tight tolerances).
         noise = (k >= 1) & at_floor & (res > 0.5 * res_prev) & held
         rho = -(T_inv @ Rs)
-        d12 = lu_solve(E2, rho[1] + 1j * rho[2])
-        dW = jnp.stack([lu_solve(E1, rho[0]), d12.real, d12.imag])
+        d12 = lin.solve_complex(frozen, factors, h, rho[1] + 1j * rho[2])
+        dW = jnp.stack([lin.solve_real(frozen, factors, h, rho[0]), d12.real, d12.imag])
         dyno = jnp.sqrt(jnp.mean((dW / scal) ** 2))
         k = k + 1
         thq = dyno / dynold
@@ -381,7 +503,8 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     converged = (status == 1) & jnp.all(jnp.isfinite(y1))
 
     def estimate():
-        """The embedded error, filtered through ``E1^{-1}`` (stiff components damped)."""
+        """The embedded error, filtered through the real iteration matrix (stiff
+        components damped)."""
         gamma0 = 1.0 / tab.gamma
         ez = (jnp.asarray(tab.e / gamma0) @ Z) / h
         Bez = jax.jvp(lambda w: R(t, y, w), (zeros,), (ez,))[1]
@@ -390,11 +513,12 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         def norm(err):
             return jnp.sqrt(jnp.mean((err / scal_e) ** 2))
 
-        err = lu_solve(E1, st.f0 + Bez)
+        err = lin.solve_real(frozen, factors, h, st.f0 + Bez)
         # On a first or a retried step a large estimate may be an unresolved stiff
         # component: one more filtering through F at y + err (Hairer and Wanner).
         again = (norm(err) >= 1.0) & (st.first | st.reject)
-        err = jax.lax.cond(again, lambda: lu_solve(E1, -R(t, y + err, zeros) + Bez),
+        err = jax.lax.cond(again, lambda: lin.solve_real(frozen, factors, h,
+                                                         -R(t, y + err, zeros) + Bez),
                            lambda: err)
         return jnp.maximum(norm(err), 1e-10), again
 
@@ -441,7 +565,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
 
     state = LoopState(
         t=pick(t1, t), h=h_next, y=pick(y1, y), w=pick((A_inv[2] @ Z) / h, st.w), f0=f0,
-        J=J, B=B, E1=E1, E2=E2, h_lu=h, fresh=fresh & ~accept, need_jac=need_jac,
+        frozen=frozen, factors=factors, h_lu=h, fresh=fresh & ~accept, need_jac=need_jac,
         Z=pick(Z, st.Z), h_z=pick(h, st.h_z), faccon=faccon,
         h_acc=pick(h, st.h_acc), err_acc=pick(jnp.maximum(1e-2, en), st.err_acc),
         first=st.first & ~accept, reject=~accept, n_accepted=st.n_accepted + accept,
@@ -449,9 +573,9 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     return state, accept
 
 
-@partial(jax.jit, static_argnames=("mech", "formulation", "nit"))
+@partial(jax.jit, static_argnames=("mech", "formulation", "nit", "linear_solver"))
 def run_chunk(state: LoopState, params: Params, *, mech: Mechanics, formulation: str,
-              nit: int):
+              nit: int, linear_solver: str):
     """Make step attempts until a batch of accepted steps is full, or the run ends.
 
     Returns ``(state, t, q, v, k)``: the accepted steps are ``t[:k]``, ``q[:k]``,
@@ -467,7 +591,7 @@ def run_chunk(state: LoopState, params: Params, *, mech: Mechanics, formulation:
 
     def body(carry):
         k, st, buf_t, buf_q, buf_v = carry
-        st, accept = _attempt(st, params, mech, formulation, nit)
+        st, accept = _attempt(st, params, mech, formulation, nit, linear_solver)
         # In-place row updates rather than scatters (see integrators.loop on why).
         buf_t = put(buf_t, k, jnp.where(accept, st.t, buf_t[k]))
         buf_q = put(buf_q, k, jnp.where(accept, st.y[:n], buf_q[k]))
@@ -484,12 +608,12 @@ _CHUNKS: OrderedDict = OrderedDict()
 
 
 def compiled_chunk(state: LoopState, params: Params, mech: Mechanics, formulation: str,
-                   nit: int):
+                   nit: int, linear_solver: str):
     """:func:`run_chunk` compiled for this system and options (or the kept executable)."""
-    key = (mech, formulation, nit)
+    key = (mech, formulation, nit, linear_solver)
     if key not in _CHUNKS:
         _CHUNKS[key] = run_chunk.lower(state, params, mech=mech, formulation=formulation,
-                                       nit=nit).compile()
+                                       nit=nit, linear_solver=linear_solver).compile()
         while len(_CHUNKS) > CACHE_SIZE:
             _CHUNKS.popitem(last=False)
     _CHUNKS.move_to_end(key)
@@ -595,8 +719,10 @@ class RadauIIA(Integrator):
         Largest step; ``inf`` for none.
     max_steps : int
         Accepted steps allowed over the run; reaching it fails the run.
-    linear_solver : {"auto", "dense"}
-        The stage systems' linear algebra: dense LU (no structured path yet).
+    linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}
+        The stage systems' linear algebra (:func:`linalg.schur.choose`): dense LU of the
+        exact iteration matrices, or, for large sparse systems, the structured simplified
+        Newton of :class:`SchurStages` with one factorisation of ``G M^{-1} G^T``.
     """
 
     adaptive: ClassVar[bool] = True
@@ -622,7 +748,7 @@ class RadauIIA(Integrator):
         super().check()
         name = type(self).__name__
         self.check_choice("formulation", FORMULATIONS)
-        self.check_choice("linear_solver", ("auto", "dense"))
+        self.check_choice("linear_solver", KINDS)
         if not 0 < self.safety <= 1:
             raise ValueError(f"{name}: safety = {self.safety} must lie in (0, 1]")
         if not (self.first_step > 0 and self.max_step > 0 and self.max_steps >= 1):
@@ -648,19 +774,28 @@ class RadauIIA(Integrator):
                         jnp.asarray(self.max_steps, jnp.int64))
         recorder = Recorder(mech, grid)
         sampling = "every internal step (accepted steps)"
+        schur = mech.schur(self.linear_solver)
+        solver_record = dict(linear_solver=schur.name, pattern_nnz=schur.nnz)
+        if schur.name != "dense" and self.formulation == "ggl":
+            # Built outside the traces that use it: built inside one, its arrays would be
+            # that trace's constants, which the compiled chunk would then expect as inputs.
+            mech.gram(schur.name)
         # Redundant constraints make the stage systems singular everywhere. Their basic
         # solutions (linalg.dense) keep Newton going, but at a crawl: on bricard (rank 23
-        # of 24) 102 steps and 145 rejections took 14 s for 0.1 s of motion.
-        rank = int(np.linalg.matrix_rank(np.asarray(mech.G(f64(case.q0), f64(t0)))))
+        # of 24) 102 steps and 145 rejections took 14 s for 0.1 s of motion. (The
+        # structured solvers apply the one rank policy of linalg.dense themselves.)
+        rank = mech.m if schur.name != "dense" else int(np.linalg.matrix_rank(
+            np.asarray(mech.G(f64(case.q0), f64(t0)))))
         if rank < mech.m:
             def refuse():
                 recorder.start(t0, y0[:n], y0[n:2 * n])
                 return recorder.trajectory(
                     f"G(q0) has rank {rank} < m = {mech.m} (redundant constraints): the "
                     "stage systems are singular", t0, y0[:n], y0[n:2 * n], {"n_steps": 0},
-                    sampling, linear_solver="dense")
+                    sampling, **solver_record)
             return refuse
-        static = dict(mech=mech, formulation=self.formulation)
+        static = dict(mech=mech, formulation=self.formulation,
+                      linear_solver=self.linear_solver)
         state0 = initial_state(f64(y0), f64(yp0), f64(t0), params, **static)
         chunk = compiled_chunk(state0, params, nit=self.newton_max_iter, **static)
 
@@ -688,6 +823,6 @@ class RadauIIA(Integrator):
                 message = (f"{what}; at step {steps + 1} (t = {t:.6g}, step size reduced to "
                            f"{float(state.h):.3g})")
             return recorder.trajectory(message, t, y[:n], y[n:2 * n], counts, sampling,
-                                       extra={"n_lu": work["n_lu"]}, linear_solver="dense")
+                                       extra={"n_lu": work["n_lu"]}, **solver_record)
 
         return solve
