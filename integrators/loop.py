@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from integrators.base import COUNTERS, Failure, Grid, Status, Trajectory
-from integrators.record import measurer
+from integrators.record import measurer, series_names
 from problems.mechanics import Mechanics
 
 #: XLA:CPU option: emit any run of operations (while loops included) whose cost model
@@ -243,10 +243,11 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         made it one kernel).
     """
     plan = Plan.make(grid, h)
-    # t_end is not in the loop (N is an argument): other horizons share it.
+    # t_end is not in the loop (N is an argument): other horizons share it. A loop is
+    # compiled for the device it runs on (jax.default_device), which the key holds too.
     width = jax.tree_util.tree_leaves(carry0)[0].shape[0] if lanes else None
     cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples,
-                                          width)
+                                          width, str(jax.config.jax_default_device))
     compiled = _LOOPS.get(cache_key) if cache_key is not None else None
     args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
@@ -261,7 +262,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
                 _LOOPS.popitem(last=False)
     else:
         _LOOPS.move_to_end(cache_key)
-    names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+    names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
 
     def solve():
