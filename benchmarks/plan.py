@@ -114,22 +114,29 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
 #: CPU), ``cpu`` or ``gpu`` (float64 either way). Single runs run on the CPU.
 DEVICES = ("auto", "cpu", "gpu")
 
-#: Lanes per chunk of an ensemble (:func:`lane_ranges`) unless a run sets its own: on one
-#: core, lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
+#: Most lanes per chunk of an ensemble (:func:`lane_ranges`) unless a run sets its own. On
+#: one core lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
 #: RATTLE on the pendulum: 3.3e7 at 256, 2.9e7 at 1024, 5.6e6 at 4096, memory-bound), so
 #: larger ensembles are better run as several such chunks, side by side on the workers.
+#: And up to 1024 lanes XLA:CPU compiled each lane's arithmetic alike whatever the width
+#: (RATTLE, baumgarte-dopri5, lobatto3ab3 on the pendulum, 2 to 1024 lanes: bit for bit);
+#: at 2048 lanes RATTLE's differed at round-off (q by 2e-15 after 200 steps, and with it
+#: some Newton iteration counts), so chunks of at most 1024 lanes keep every lane the same
+#: whatever the chunking.
 LANES_PER_CHUNK = 1024
 
 
 def lane_ranges(lanes: int, per_chunk: int) -> tuple[tuple[int, int], ...]:
-    """The chunks of an ensemble of ``lanes`` lanes, as ``(first, stop)`` ranges: the
-    ``max(1, lanes // per_chunk)`` chunks of nearly equal size, so that each holds at least
-    ``per_chunk`` lanes (or all of them) and fewer than twice as many.
+    """The chunks of an ensemble of ``lanes`` lanes, as ``(first, stop)`` ranges of nearly
+    equal size: ``ceil(lanes / per_chunk)`` of them, so each holds at most ``per_chunk``
+    lanes, but never a lane alone (at most ``lanes // 2`` chunks: a batch of one is
+    compiled otherwise than a larger batch, and lobatto3ab3's lane differed at round-off).
 
-    Lane ``i`` is drawn and integrated alike in any chunk (:mod:`problems.ensemble`), so
-    the chunking changes no result, only which workers share the work.
+    Lane ``i`` is drawn and integrated alike in any chunk of 2 to
+    :data:`LANES_PER_CHUNK` lanes (:mod:`problems.ensemble`), so such chunkings change no
+    result, only which workers share the work.
     """
-    count = max(1, lanes // per_chunk)
+    count = max(1, min(-(-lanes // per_chunk), lanes // 2))
     bounds = [k * lanes // count for k in range(count + 1)]
     return tuple(zip(bounds[:-1], bounds[1:]))
 

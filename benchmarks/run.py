@@ -71,8 +71,9 @@ def parser() -> argparse.ArgumentParser:
                    help="where an ensemble's loop runs: auto (a GPU when JAX sees one, else "
                         "the CPU; the default), cpu or gpu; single runs run on the CPU")
     p.add_argument("--lanes-per-chunk", type=int, metavar="L",
-                   help=f"split an ensemble into max(1, K // L) chunks of nearly equal size, "
-                        f"each a task of its own on the workers (default {LANES_PER_CHUNK})")
+                   help=f"split an ensemble into chunks of at most L lanes (nearly equal, "
+                        f"never one lane alone), each a task of its own on the workers "
+                        f"(default {LANES_PER_CHUNK})")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed solves of each run at least (autorange; the median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")

@@ -188,8 +188,8 @@ def test_bad_ensemble_in_a_suite_names_the_line(tmp_path, capsys):
 def test_chunks_merge_into_the_unchunked_record(method):
     """An ensemble run as chunks of lanes, each executed on its own as a worker executes
     it, merges into the record of the ensemble run whole: every lane bit for bit (a lane
-    is drawn and integrated alike in any chunk of two lanes or more), and so every
-    summary; only the timing differs."""
+    is drawn and integrated alike in any chunk of 2 to 1024 lanes), and so every summary;
+    only the timing differs."""
     spec = RunSpec("pendulum", method, h=0.05 if method == "rattle" else None,
                    rtol=None if method == "rattle" else 1e-6, t_end=2.0, lanes=7, seed=3,
                    lanes_per_chunk=2)
@@ -210,14 +210,15 @@ def test_chunks_merge_into_the_unchunked_record(method):
     assert merged.work.device == whole.work.device == "cpu"
 
 
-def test_lane_ranges_hold_at_least_the_lanes_per_chunk():
+def test_lane_ranges_hold_at_most_the_lanes_per_chunk_and_never_one_alone():
     assert lane_ranges(5, 1024) == ((0, 5),)
-    assert lane_ranges(2047, 1024) == ((0, 2047),)
+    assert lane_ranges(2047, 1024) == ((0, 1023), (1023, 2047))
     assert lane_ranges(4096, 1024) == ((0, 1024), (1024, 2048), (2048, 3072), (3072, 4096))
+    assert lane_ranges(3, 2) == ((0, 3),) and lane_ranges(5, 2) == ((0, 2), (2, 5))
     ranges = lane_ranges(16384 + 5, 1000)
-    assert ranges[0][0] == 0 and ranges[-1][1] == 16389 and len(ranges) == 16
+    assert ranges[0][0] == 0 and ranges[-1][1] == 16389 and len(ranges) == 17
     assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
-    assert all(1000 <= stop - first < 2000 for first, stop in ranges)
+    assert all(2 <= stop - first <= 1000 for first, stop in ranges)
 
 
 @pytest.mark.slow
