@@ -118,12 +118,12 @@ DEVICES = ("auto", "cpu", "gpu")
 #: one core lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
 #: RATTLE on the pendulum: 3.3e7 at 256, 2.9e7 at 1024, 5.6e6 at 4096, memory-bound), so
 #: larger ensembles are better run as several such chunks, side by side on the workers.
-#: And up to 1024 lanes XLA:CPU compiled each lane's arithmetic alike whatever the width
-#: (RATTLE, baumgarte-dopri5, lobatto3ab3 on the pendulum, 2 to 1024 lanes: bit for bit);
-#: at 2048 lanes RATTLE's differed at round-off (q by 2e-15 after 200 steps, and with it
-#: some Newton iteration counts), so chunks of at most 1024 lanes keep every lane the same
-#: whatever the chunking.
-LANES_PER_CHUNK = 1024
+#: XLA:CPU compiles the vmapped loop by batch width, and a lane's round-off can depend on
+#: it: on the pendulum over 2 s every width from 2 to 1024 gave RATTLE's lanes bit for
+#: bit, and 2 to 768 baumgarte-dopri5's, while 1024 lanes of dopri5 differed from 768 by
+#: 1.1e-15 in q and 2048 of RATTLE from 1024 by 2e-15 (and in some Newton counts). At most
+#: 512 lanes per chunk keeps every lane measured the same whatever the chunking.
+LANES_PER_CHUNK = 512
 
 
 def lane_ranges(lanes: int, per_chunk: int) -> tuple[tuple[int, int], ...]:
@@ -132,9 +132,10 @@ def lane_ranges(lanes: int, per_chunk: int) -> tuple[tuple[int, int], ...]:
     lanes, but never a lane alone (at most ``lanes // 2`` chunks: a batch of one is
     compiled otherwise than a larger batch, and lobatto3ab3's lane differed at round-off).
 
-    Lane ``i`` is drawn and integrated alike in any chunk of 2 to
-    :data:`LANES_PER_CHUNK` lanes (:mod:`problems.ensemble`), so such chunkings change no
-    result, only which workers share the work.
+    Lane ``i`` is drawn alike in any chunk (:mod:`problems.ensemble`) and integrated by
+    the same arithmetic, which XLA compiled alike for every width measured up to
+    :data:`LANES_PER_CHUNK`, so such chunkings changed no result, only which workers share
+    the work; wider chunks can change a lane's round-off.
     """
     count = max(1, min(-(-lanes // per_chunk), lanes // 2))
     bounds = [k * lanes // count for k in range(count + 1)]

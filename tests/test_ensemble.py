@@ -188,8 +188,8 @@ def test_bad_ensemble_in_a_suite_names_the_line(tmp_path, capsys):
 def test_chunks_merge_into_the_unchunked_record(method):
     """An ensemble run as chunks of lanes, each executed on its own as a worker executes
     it, merges into the record of the ensemble run whole: every lane bit for bit (a lane
-    is drawn and integrated alike in any chunk of 2 to 1024 lanes), and so every summary;
-    only the timing differs."""
+    is drawn alike in any chunk, and XLA compiles these small widths alike), and so every
+    summary; only the timing differs."""
     spec = RunSpec("pendulum", method, h=0.05 if method == "rattle" else None,
                    rtol=None if method == "rattle" else 1e-6, t_end=2.0, lanes=7, seed=3,
                    lanes_per_chunk=2)
