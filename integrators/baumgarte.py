@@ -35,6 +35,7 @@ from integrators.base import Failure, Grid, Integrator
 from integrators.fixed import FixedStep
 from integrators.loop import put
 from integrators.record import Recorder, batch_length
+from linalg.compiled import compile_lifted
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -245,8 +246,9 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
     schur = mech.schur(linear_solver)
     static = dict(mech=mech, schur=schur, solver=solver, control=control)
     solver_record = dict(linear_solver=schur.name, pattern_nnz=schur.nnz)
-    state0 = initial_state(jnp.asarray(y0), params, **static)
-    chunk = run_chunk.lower(state0, params, **static).compile()
+    y0_device = jnp.asarray(y0)
+    state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
+    chunk = compile_lifted(run_chunk, state0, params, **static)
     tableau = solver.tableau
     fsal = int(tableau.fsal)
     recorder = Recorder(mech, grid)
