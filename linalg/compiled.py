@@ -12,11 +12,13 @@ process from 2.1 to 3.5 GB.
 :func:`compile_lifted` traces the function, passes every constant of at least
 :data:`LIFT_BYTES` to the executable as an argument instead (one buffer per distinct
 value, kept with the executable), and compiles. Smaller constants stay in the program,
-where XLA may fold them, so small systems compile as before.
+where XLA may fold them, so small systems compile as before. What the compiler freed is
+then given back to the system (:func:`give_back_heap`).
 """
 
 from __future__ import annotations
 
+import ctypes
 from typing import Any, Callable
 
 import jax
@@ -25,6 +27,29 @@ import numpy as np
 
 #: Constants of at least this many bytes become arguments.
 LIFT_BYTES = 1 << 14
+
+
+def _malloc_trim() -> Callable[[int], int] | None:
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc: nothing to give back this way
+        return None
+
+
+_TRIM = _malloc_trim()
+
+
+def give_back_heap() -> None:
+    """Return the C heap's free pages to the system (glibc's ``malloc_trim``; elsewhere
+    nothing).
+
+    Set-up frees a lot at once: the compiler's working memory, a pattern tracing's Python
+    sets (:func:`linalg.pattern.traced_sparsity`). glibc keeps such pages in the process,
+    resident, under everything it does next: after building rigid-chain:N=8192 the
+    process was 816 MB resident, 608 MB once they were given back.
+    """
+    if _TRIM is not None:
+        _TRIM(0)
 
 
 class Lifted:
@@ -91,4 +116,5 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
 
     flat_args = jax.tree_util.tree_leaves(args)
     compiled = jax.jit(run).lower(values, *flat_args).compile()
+    give_back_heap()
     return Lifted(compiled, values, traced.out_tree)

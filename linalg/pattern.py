@@ -18,9 +18,23 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from linalg.compiled import give_back_heap
+
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
 #: the dense border of the banded solver.
 BORDER_MIN = 32
+
+
+def traced_sparsity(detect: Callable, f: Callable, x: jax.Array) -> asdex.SparsityPattern:
+    """``detect(f, x)`` (``asdex.jacobian_sparsity`` or ``asdex.hessian_sparsity``), then the
+    heap pages it freed given back to the system.
+
+    The tracing holds a Python set per element of every intermediate array of ``f``;
+    freed, that memory would stay resident (:func:`linalg.compiled.give_back_heap`).
+    """
+    pattern = detect(f, x)
+    give_back_heap()
+    return pattern
 
 
 def gather(a: jax.Array, index: jax.Array) -> jax.Array:
@@ -53,7 +67,7 @@ class SparseJacobian:
     """
 
     def __init__(self, f: Callable[[jax.Array], jax.Array], x: jax.Array):
-        pattern = asdex.jacobian_sparsity(f, x)
+        pattern = traced_sparsity(asdex.jacobian_sparsity, f, x)
         self.shape = (pattern.m, pattern.n)
         self.rows = np.asarray(pattern.rows, dtype=np.int64)
         self.cols = np.asarray(pattern.cols, dtype=np.int64)

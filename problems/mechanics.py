@@ -51,6 +51,7 @@ import scipy.sparse as sp  # noqa: E402
 
 from linalg.blocks import Blocks  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
+from linalg.pattern import traced_sparsity  # noqa: E402
 from linalg.schur import DENSE_KKT_MAX, choose  # noqa: E402
 
 Array = jax.Array
@@ -177,8 +178,8 @@ class Mechanics:
         (structural, like ``G``'s)."""
         if self.kinetic is None:
             return None
-        pattern = asdex.hessian_sparsity(lambda v: self.kinetic(jnp.zeros(self.n), v),
-                                         jnp.zeros(self.n))
+        pattern = traced_sparsity(asdex.hessian_sparsity,
+                                  lambda v: self.kinetic(jnp.zeros(self.n), v), jnp.zeros(self.n))
         blocks = Blocks(np.asarray(pattern.rows), np.asarray(pattern.cols), self.n)
         return blocks if blocks.block_diagonal else None
 
@@ -312,7 +313,8 @@ class Mechanics:
         to vanish there is lost); rows (or columns) that share no column (row) get one
         colour, and one reverse (forward) derivative per colour gives all of ``G``.
         """
-        pattern = asdex.jacobian_sparsity(lambda q: self.g(q, jnp.asarray(0.0)), jnp.zeros(self.n))
+        pattern = traced_sparsity(asdex.jacobian_sparsity,
+                                  lambda q: self.g(q, jnp.asarray(0.0)), jnp.zeros(self.n))
         with warnings.catch_warnings():
             # A tiny G (one pendulum constraint) needs as many colours as columns: fine.
             warnings.simplefilter("ignore", asdex.DenseColoringWarning)
