@@ -16,6 +16,12 @@
   same worker where they can, so a sweep compiles once;
 - **identical accuracy**: a run computes the same thing whatever ``jobs`` or the engine is
   (on the same kind of machine), so accuracy columns do not depend on them;
+- **chunks**: an ensemble runs as one task per chunk of its lanes
+  (:func:`benchmarks.plan.lane_ranges`), spread over the workers like any other tasks;
+  when the last chunk ends its parts are merged into the one ensemble record
+  (:func:`benchmarks.execute.merge`), whose lanes equal the unchunked run's. A chunk that
+  times out, dies or raises makes the ensemble's record that chunk's ``timeout`` or
+  ``error``, its message naming the lanes;
 - **resume**: with ``resume`` the runs whose ``run_key`` the store already holds as finished
   (any status but ``error`` and ``timeout``) are not run again. Each run is committed to the
   store on its own as it ends, by this process alone (never by a worker), so a batch killed
@@ -54,6 +60,7 @@ import io
 import math
 import sqlite3
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterable, TextIO
 
@@ -62,6 +69,7 @@ import pandas as pd
 from tqdm import tqdm
 
 import problems
+from benchmarks.execute import merge
 from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.files import FolderInUse, FolderLock, replace_file
 from benchmarks.plan import DEFAULT_TIMEOUT, PlannedRun, check_timeout, firsts, pending, plan
@@ -142,9 +150,13 @@ def _summary(row: dict) -> str:
 
 
 def _outcome_record(run: PlannedRun, task: Task, outcome: Outcome) -> Record:
-    """The record of a run from how its task ended."""
+    """The record of a run from how its task ended (a chunk's record: its lanes named)."""
     if outcome.state == "done":
-        return outcome.result
+        result = outcome.result
+        if task.payload[0].lanes is None or result.ending.message is None:
+            return result
+        return replace(result, ending=replace(result.ending, message=(
+            f"{_lanes(task.payload[0])}: {result.ending.message}")))
     if outcome.state == "timeout":
         message = (f"exceeded the time limit of {task.time_limit:g} s during "
                    f"{outcome.phase or 'start-up'} and was killed")
@@ -153,7 +165,25 @@ def _outcome_record(run: PlannedRun, task: Task, outcome: Outcome) -> Record:
     else:
         message = outcome.message
     status = Status.TIMEOUT if outcome.state == "timeout" else Status.ERROR
+    if task.payload[0].lanes is not None:
+        message = f"{_lanes(task.payload[0])}: {message}"
     return Record(run.run, Ending(status, message))
+
+
+def _lanes(chunk: PlannedRun) -> str:
+    """The lanes of a planned chunk of an ensemble, in words."""
+    first, stop = chunk.lanes
+    return f"the chunk of lanes {first} to {stop - 1}"
+
+
+def _ensemble_record(run: PlannedRun, ended: list[tuple[Task, Outcome]]) -> Record:
+    """The record of an ensemble from how its chunks' tasks ended: the merge of their parts
+    (:func:`benchmarks.execute.merge`), or the record of the first chunk, in lane order,
+    that gave none."""
+    for task, outcome in sorted(ended, key=lambda pair: pair[0].payload[0].lanes):
+        if outcome.state != "done" or isinstance(outcome.result, Record):
+            return _outcome_record(run, task, outcome)
+    return merge(run, [outcome.result for _, outcome in ended])
 
 
 def engine(jobs: int | None, cluster: str | None) -> Executor:
@@ -337,10 +367,17 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
         for i in skipped:
             records[i] = stored[runs[i].run.run_key]
     # A run's affinity is its problem and method: a sweep over h or rtol stays on one
-    # worker, which compiles the method once for it.
-    tasks = [Task(i, "run", (runs[i], repeats, loaded, blobs), runs[i].timeout,
-                  runs[i].label, (runs[i].run.problem, runs[i].run.integrator))
-             for i in todo]
+    # worker, which compiles the method once for it. An ensemble is one task per chunk.
+    tasks, owner = [], []
+    for i in todo:
+        for lanes in runs[i].chunks or [None]:
+            chunk = runs[i] if lanes is None else replace(runs[i], lanes=lanes)
+            label = runs[i].label if lanes is None else f"{runs[i].label} / {_lanes(chunk)}"
+            tasks.append(Task(len(tasks), "run", (chunk, repeats, loaded, blobs),
+                              runs[i].timeout, label,
+                              (runs[i].run.problem, runs[i].run.integrator)))
+            owner.append(i)
+    chunks_ended: dict[int, list[tuple[Task, Outcome]]] = {}
     n_unique = len(todo) + len(skipped)
     try:
         session = store.begin(suite, timing_note=executor.note(repeats))
@@ -377,8 +414,17 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
         stream["fh"].flush()
 
     def report(task: Task, outcome: Outcome) -> None:
-        record = _outcome_record(runs[task.id], task, outcome)
-        records[task.id] = record
+        i = owner[task.id]
+        if runs[i].chunks:
+            ended = chunks_ended.setdefault(i, [])
+            ended.append((task, outcome))
+            if len(ended) < len(runs[i].chunks):
+                bar.finish(task.id, f"{task.label}: {outcome.state}")
+                return
+            record = _ensemble_record(runs[i], chunks_ended.pop(i))
+        else:
+            record = _outcome_record(runs[i], task, outcome)
+        records[i] = record
         if not failed(partial):
             try:
                 append(record.row)
@@ -390,7 +436,7 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
             except (sqlite3.Error, OSError) as exc:
                 fail(f"{store.path}: storing {task.label} failed ({exc}); it and every later "
                      f"run are in {csv_path} only")
-        bar.finish(task.id, f"{task.label}: {_summary(record.row)}")
+        bar.finish(task.id, f"{runs[i].label}: {_summary(record.row)}")
 
     # Studies go first, beside the runs: each is one long task, and started last it would
     # leave the other workers idle while it ends.

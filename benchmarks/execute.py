@@ -8,6 +8,13 @@ with the drift classes of ``|g|`` and ``|H - H0|`` (:mod:`benchmarks.drift`), th
 solver and the sampling. A run that fails numerically is ``failed`` with the method's
 message, a run that raises is ``error`` with the exception (and the ``file:line`` in user
 code where it arose), and neither raises here.
+
+An ensemble (:mod:`problems.ensemble`) may run in chunks of its lanes, each a task of its
+own on any worker (:func:`benchmarks.plan.lane_ranges`): a planned run whose ``lanes``
+names a range executes those lanes and returns their :class:`Part`, and :func:`merge`
+makes the one ensemble record of the parts, wherever they ran, with no case at hand. An
+ensemble run whole is the merge of its one part, so a chunked ensemble's record equals the
+unchunked one's in everything but its timing.
 """
 
 from __future__ import annotations
@@ -17,9 +24,10 @@ import json
 import math
 import statistics
 import time
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Callable
 
+import jax
 import numpy as np
 
 import integrators
@@ -28,7 +36,7 @@ from benchmarks import compilation
 from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
 from benchmarks.metrics import summarize
-from benchmarks.plan import PlannedRun, plan
+from benchmarks.plan import PlannedRun, jax_device, plan
 from benchmarks.records import (QUANTILES, Ending, Metrics, Record, RunSpec, Spread, Status,
                                 Timing, Work, provenance)
 from integrators.base import COUNTERS, Grid, Trajectory
@@ -44,10 +52,10 @@ def _case(problem: ProblemSpec):
 
 
 @functools.lru_cache(maxsize=4)
-def _lanes(problem: ProblemSpec, lanes: int, seed: int):
+def _lanes(problem: ProblemSpec, lanes: int, seed: int, first: int):
     # The initial states of an ensemble depend on the case alone: every method and step of
     # a worker's sweep starts from the same ones.
-    return ensemble.draw(_case(problem), lanes, seed)
+    return ensemble.draw(_case(problem), lanes, seed, first)
 
 
 def forget_cases() -> None:
@@ -78,8 +86,13 @@ def more(times: list[float], repeats: int) -> bool:
 
 
 def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None = None,
-            on_phase: Callable[[str], None] | None = None) -> Record:
+            on_phase: Callable[[str], None] | None = None) -> Record | Part:
     """Run ``run``: set-up once, solve and time by autorange, measure the last solve.
+
+    An ensemble runs on the device its ``device`` option selects
+    (:func:`benchmarks.plan.jax_device`), every other run on the CPU. A planned chunk of
+    an ensemble (``run.lanes`` set) returns the :class:`Part` of its lanes, or an ``error``
+    record where it could not run them.
 
     Parameters
     ----------
@@ -108,13 +121,18 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
             case = case.with_t_end(run.horizon)
         integ = integrators.make(run.integrator)
         grid = Grid(case.t0, case.t_end, **dict(run.grid))
-        lanes = None
+        lanes, first = None, 0
+        device = jax_device("cpu")
         if run.run.lanes is not None:
+            first, stop = run.lanes or (0, run.run.lanes)
+            device = jax_device(run.device)
+            if device is None:
+                raise RuntimeError(f"device {run.device}: JAX sees no GPU on this machine")
             phase("drawing the ensemble's initial states")
-            lanes = _lanes(run.problem, run.run.lanes, run.run.seed)
+            lanes = _lanes(run.problem, stop, run.run.seed, first)
         phase("set-up")
         start = time.perf_counter()
-        with compilation.Watch() as compiled:
+        with compilation.Watch() as compiled, jax.default_device(device):
             solve = (integ.prepare(case, grid) if lanes is None else
                      integ.prepare_ensemble(case, grid, *lanes))
         timing = Timing(setup_s=time.perf_counter() - start, setup_cache=compiled.source)
@@ -122,7 +140,8 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
         while True:
             phase(f"solve (repeat {len(times) + 1}; set-up took {timing.setup_s:.3g} s)")
             start = time.perf_counter()
-            traj = solve()
+            with jax.default_device(device):
+                traj = solve()
             times.append(time.perf_counter() - start)
             if not more(times, repeats):
                 break
@@ -136,8 +155,10 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
                          wall_min_s=min(times), wall_max_s=max(times),
                          callback_s=_given(extra.get("callback_s")))
         if lanes is not None:
-            return measure_ensemble(run, case, traj, timing)
-        return measure(run, case, traj, timing)
+            part = measure_part(run, case, traj, timing, first, device.platform)
+            return part if run.lanes is not None else merge(run, [part])
+        record = measure(run, case, traj, timing)
+        return replace(record, work=replace(record.work, device=device.platform))
     except Exception as exc:  # a defect in the method or the user's functions
         return Record(run.run, Ending(Status.ERROR, explain(exc)), timing)
 
@@ -160,15 +181,21 @@ def _non_finite(traj: Trajectory) -> tuple[str, float | None] | None:
 def growth(case, traj: Trajectory) -> dict[str, str | None]:
     """Drift classes of ``|g|`` and, where energy is conserved, of ``|H - H0|``
     (:func:`benchmarks.drift.classify` labels), from the windowed maxima."""
-    w = traj.windows
+    return growth_of(traj.windows, case.t0,
+                     case.energy_scale if case.mech.has_energy else None)
+
+
+def growth_of(w: dict[str, np.ndarray], t0: float, energy_scale: float | None
+              ) -> dict[str, str | None]:
+    """:func:`growth` from the windows ``w`` of a run that starts at ``t0``; no energy class
+    where ``energy_scale`` is ``None`` (no conserved energy)."""
     t = w.get("t")
     if t is None or len(t) == 0:
         return {"pos_growth": None, "energy_growth": None}
-    pos = classify(t, w["pos"], t0=case.t0, floor=POS_FLOOR) if "pos" in w else None
+    pos = classify(t, w["pos"], t0=t0, floor=POS_FLOOR) if "pos" in w else None
     energy = None
-    if case.mech.has_energy and "energy" in w:
-        energy = classify(t, w["energy"], t0=case.t0,
-                          floor=ENERGY_REL_FLOOR * case.energy_scale)
+    if energy_scale is not None and "energy" in w:
+        energy = classify(t, w["energy"], t0=t0, floor=ENERGY_REL_FLOOR * energy_scale)
     return {"pos_growth": pos.label() if pos is not None else None,
             "energy_growth": energy.label() if energy is not None else None}
 
@@ -210,77 +237,150 @@ LANE_METRICS = {"max_pos_residual": "pos", "max_vel_residual": "vel",
                 "rel_energy_error": "energy"}
 
 
-def measure_ensemble(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing) -> Record:
-    """The record of an ensemble from its lanes' trajectories.
+@dataclass
+class Part:
+    """What a chunk of an ensemble's lanes gives for the ensemble's record: no case is
+    needed to merge parts (:func:`merge`), wherever they ran.
 
-    Per lane (:attr:`Record.lanes`): its seed index, its :class:`~integrators.base.Status`
-    as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize` and its work
-    counters. Lane 0 starts from the case's own initial values, so it alone has the case's
-    reference: its final error and scd are the record's, and the other lanes' are NaN. The
-    record's metrics are the worst lane's (the maxima over the lanes that finished), its
-    work the sum over lanes (the work the timed solve did), its drift series the per-window
-    maxima over the lanes (with their medians beside them as ``median:NAME``), its final
-    state and samples lane 0's, and its :class:`~benchmarks.records.Spread` the quantiles
-    over the lanes that finished. The ensemble is ``ok`` when every lane is; otherwise
-    ``failed``, its message counting the failed lanes and quoting the first.
+    ``first`` is the index of its first lane; ``table`` its rows of the per-lane table
+    (:attr:`Record.lanes`); ``energy`` and ``inv`` each lane's ``max_energy_error`` and
+    declared invariants' errors; ``stacks`` each windowed series, one row per lane (NaN
+    past a lane's last window), and ``t`` the window ends of its longest lane; ``failure``
+    its first failed lane (index and trajectory) or ``None``; ``nominal`` the record of
+    lane 0 (in the part that holds it, else ``None``); ``has_energy`` whether the case
+    conserves energy; ``timing`` the chunk's and ``device`` the platform it ran on.
+    """
+
+    first: int
+    table: dict[str, np.ndarray]
+    energy: np.ndarray
+    inv: dict[str, np.ndarray]
+    stacks: dict[str, np.ndarray]
+    t: np.ndarray
+    failure: tuple[int, Trajectory] | None
+    nominal: Record | None
+    has_energy: bool
+    timing: Timing
+    device: str
+
+
+def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing, first: int,
+                 device: str) -> Part:
+    """The :class:`Part` of the lanes ``first, first + 1, ...`` whose trajectories are
+    ``trajs``.
+
+    Lane 0 starts from the case's own initial values, so it alone has the case's
+    reference: its final error and scd are the record's, and the other lanes' are NaN.
     """
     bare = case.with_initial(case.q0, case.v0)  # the lanes but 0 have no reference
-    rows = [summarize(case if i == 0 else bare, traj) for i, traj in enumerate(trajs)]
+    rows = [summarize(case if first + i == 0 else bare, traj) for i, traj in enumerate(trajs)]
     ok = np.array([traj.status == Status.OK for traj in trajs])
-    table = {"seed": np.arange(len(trajs), dtype=float), "status": (~ok).astype(float)}
+    table = {"seed": np.arange(first, first + len(trajs), dtype=float),
+             "status": (~ok).astype(float)}
     for name in ("max_pos_residual", "max_vel_residual", "rel_energy_error",
                  "final_state_error"):
         table[name] = np.array([row[name] for row in rows], dtype=float)
     table["t_final"] = np.array([traj.t_final for traj in trajs], dtype=float)
     for key in COUNTERS:
         table[key] = np.array([traj.counts.get(key, 0) for traj in trajs], dtype=float)
+    inv = {name[len("max_inv:"):]: np.array([row[name] for row in rows], dtype=float)
+           for name in rows[0] if name.startswith("max_inv:")}
+    longest = max(trajs, key=lambda traj: len(traj.windows["t"]))
+    stacks = {}
+    for name in (k for k in longest.windows if k != "t"):
+        stack = np.full((len(trajs), len(longest.windows["t"])), np.nan)
+        for i, traj in enumerate(trajs):
+            series = np.asarray(traj.windows[name], dtype=float)
+            stack[i, :len(series)] = series
+        stacks[name] = stack
+    failed = np.flatnonzero(~ok)
+    return Part(first, table, np.array([row["max_energy_error"] for row in rows], dtype=float),
+                inv, stacks, np.asarray(longest.windows["t"], dtype=float),
+                (first + int(failed[0]), trajs[failed[0]]) if len(failed) else None,
+                measure(run, case, trajs[0], timing) if first == 0 else None,
+                bool(case.mech.has_energy), timing, device)
 
-    nominal = measure(run, case, trajs[0], timing)
-    windows = _envelope(trajs)
+
+def merge(run: PlannedRun, parts: list[Part]) -> Record:
+    """The record of an ensemble from the :class:`Part` of each chunk of its lanes.
+
+    Per lane (:attr:`Record.lanes`): its seed index, its :class:`~integrators.base.Status`
+    as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize` and its work
+    counters, in lane order. The record's metrics are the worst lane's (the maxima over the
+    lanes that finished), its work the sum over lanes (the work the timed solves did), its
+    drift series the per-window maxima over the lanes (with their medians beside them as
+    ``median:NAME``), its final state, final error and samples lane 0's, and its
+    :class:`~benchmarks.records.Spread` the quantiles over the lanes that finished. The
+    ensemble is ``ok`` when every lane is; otherwise ``failed``, its message counting the
+    failed lanes and quoting the first. Its timing is the sum over the parts (what one
+    core running the chunks one after another would take; per part the median of its
+    timed solves for ``wall_s``); ``device`` names the platforms they ran on.
+    """
+    parts = sorted(parts, key=lambda part: part.first)
+    table = {name: np.concatenate([part.table[name] for part in parts])
+             for name in parts[0].table}
+    ok = table["status"] == 0
+    nominal = parts[0].nominal
+    windows = _envelope(parts)
     worst = {name: _given(np.nanmax(table[name][ok])) if ok.any() else None
              for name in LANE_METRICS}
-    inv = {}
-    for name in (k for k in rows[0] if k.startswith("max_inv:")):
-        values = [row[name] for row, good in zip(rows, ok) if good]
-        inv[name[len("max_inv:"):]] = _given(np.nanmax(values)) if values else None
-    max_energy = _given(np.nanmax([row["max_energy_error"] for row in rows])) \
-        if ok.any() and case.mech.has_energy else None
+    inv = {name: _given(np.nanmax(np.concatenate([part.inv[name] for part in parts])[ok]))
+           if ok.any() else None for name in parts[0].inv}
+    energy = np.concatenate([part.energy for part in parts])
+    max_energy = _given(np.nanmax(energy)) if ok.any() and parts[0].has_energy else None
     metrics = replace(nominal.metrics, **worst, max_energy_error=max_energy,
                       invariant_errors=json.dumps(inv) if inv else "",
-                      **growth(case, Trajectory(Status.OK, "", 0.0, None, None, windows,
-                                                {}, {})))
+                      **growth_of(windows, run.run.t0,
+                                  run.run.energy_scale if parts[0].has_energy else None))
     spread = {"failed_fraction": float(np.mean(~ok))}
     for name, short in LANE_METRICS.items():
         values = table[name][ok]
         for q in QUANTILES:
             spread[f"{short}_q{q}"] = (_given(np.nanpercentile(values, q))
                                        if len(values) and not np.isnan(values).all() else None)
-    failed = np.flatnonzero(~ok)
     ending = nominal.ending
-    if len(failed):
-        first = trajs[failed[0]]
+    failures = [part.failure for part in parts if part.failure is not None]
+    if failures:
+        lane, first = failures[0]
         ending = replace(ending, status=Status.FAILED, fail_step=_given(first.fail_step),
                          fail_time=_given(first.fail_time),
-                         message=f"{len(failed)} of {len(trajs)} lanes failed; the first, "
-                                 f"lane {failed[0]}: {first.message}")
-    work = replace(nominal.work, **{key: int(table[key].sum()) for key in COUNTERS})
-    return Record(run.run, ending, timing, work, metrics, Spread(**spread), windows=windows,
-                  samples=trajs[0].samples, lanes=table)
+                         message=f"{int((~ok).sum())} of {len(ok)} lanes failed; the first, "
+                                 f"lane {lane}: {first.message}")
+    work = replace(nominal.work, device="+".join(sorted({part.device for part in parts})),
+                   **{key: int(table[key].sum()) for key in COUNTERS})
+    return Record(run.run, ending, _timing(parts), work, metrics, Spread(**spread),
+                  windows=windows, samples=nominal.samples, lanes=table)
 
 
-def _envelope(trajs: list[Trajectory]) -> dict[str, np.ndarray]:
+def _timing(parts: list[Part]) -> Timing:
+    """The timing of an ensemble run in ``parts``: sums over the parts, the fewest timed
+    solves of a part, and the set-up's cache source where the parts agree (else
+    ``partial``)."""
+    timings = [part.timing for part in parts]
+
+    def total(name):
+        values = [getattr(t, name) for t in timings if getattr(t, name) is not None]
+        return sum(values) if values else None
+
+    sources = {t.setup_cache for t in timings}
+    return Timing(wall_s=total("wall_s"), setup_s=total("setup_s"),
+                  setup_cache=sources.pop() if len(sources) == 1 else "partial",
+                  repeats=min(t.repeats for t in timings), wall_min_s=total("wall_min_s"),
+                  wall_max_s=total("wall_max_s"), callback_s=total("callback_s"))
+
+
+def _envelope(parts: list[Part]) -> dict[str, np.ndarray]:
     """Per-window maxima over the lanes (and medians, ``median:NAME``) of the windowed
     series; a window is kept where some lane reached it, its end time the longest lane's."""
-    longest = max(trajs, key=lambda traj: len(traj.windows["t"]))
-    width = len(longest.windows["t"])
-    out = {"t": np.asarray(longest.windows["t"], dtype=float)}
-    for name in longest.windows:
-        if name == "t":
-            continue
-        stack = np.full((len(trajs), width), np.nan)
-        for i, traj in enumerate(trajs):
-            series = np.asarray(traj.windows[name], dtype=float)
-            stack[i, :len(series)] = series
+    t = max((part.t for part in parts), key=len)
+    out = {"t": t}
+    for name in parts[0].stacks:
+        stack = np.full((sum(len(part.table["seed"]) for part in parts), len(t)), np.nan)
+        row = 0
+        for part in parts:
+            rows, width = part.stacks[name].shape
+            stack[row:row + rows, :width] = part.stacks[name]
+            row += rows
         out[name] = np.nanmax(stack, axis=0)
         out[f"median:{name}"] = np.nanmedian(stack, axis=0)
     return out

@@ -27,6 +27,8 @@ import re
 from dataclasses import dataclass
 from typing import Iterable
 
+import jax
+
 import integrators
 import problems
 from benchmarks.audit import AuditError, audit, explain
@@ -54,7 +56,9 @@ class PlannedRun:
     one is ``run.t_end``); ``grid`` the :class:`~integrators.base.Grid` options;
     ``timeout`` the time limit in seconds (``None``: no limit); ``run`` the record's
     :class:`~benchmarks.records.Run` part, ``run_key`` included; ``origin`` where the run
-    was asked for.
+    was asked for. For an ensemble, ``device`` is where its loop runs (:data:`DEVICES`),
+    ``chunks`` the lane ranges it runs in (:func:`lane_ranges`), and ``lanes`` the one
+    range a task executes (``None``: every lane).
     """
 
     problem: ProblemSpec
@@ -64,6 +68,9 @@ class PlannedRun:
     timeout: float | None
     run: Run
     origin: str = ""
+    device: str = "auto"
+    chunks: tuple[tuple[int, int], ...] = ()
+    lanes: tuple[int, int] | None = None
 
     @property
     def label(self) -> str:
@@ -72,12 +79,15 @@ class PlannedRun:
 
 
 def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=None,
-           timeout=None, origin="", lanes=None, seed=None) -> list[RunSpec]:
+           timeout=None, origin="", lanes=None, seed=None, device=None,
+           lanes_per_chunk=None) -> list[RunSpec]:
     """Every combination: ``hs`` go to fixed-step methods, ``rtols x atols`` to adaptive ones.
 
     Each spec string is resolved here, once (:func:`problems.resolve`,
     :func:`integrators.resolve`); an empty list leaves the method's own default for that
-    setting. ``lanes`` (and ``seed``, default 0) make every run an ensemble.
+    setting. ``lanes`` (and ``seed``, default 0) make every run an ensemble, run on
+    ``device`` (:data:`DEVICES`, default ``auto``) in chunks of ``lanes_per_chunk``
+    (:func:`lane_ranges`).
 
     Raises
     ------
@@ -86,7 +96,8 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     """
     resolved = [problems.resolve(p, origin) for p in problem_specs]
     methods = [integrators.resolve(i, origin) for i in integrator_specs]
-    ensemble = (None, None) if lanes is None else (int(lanes), int(seed or 0))
+    ensemble = ((None, None) if lanes is None else (int(lanes), int(seed or 0))) + (
+        device, lanes_per_chunk)
     runs = []
     for p, i in itertools.product(resolved, methods):
         if integrators.cls_of(i.name).adaptive:
@@ -99,19 +110,77 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     return runs
 
 
+#: Where an ensemble's compiled loop runs: ``auto`` (a GPU when JAX sees one, else the
+#: CPU), ``cpu`` or ``gpu`` (float64 either way). Single runs run on the CPU.
+DEVICES = ("auto", "cpu", "gpu")
+
+#: Most lanes per chunk of an ensemble (:func:`lane_ranges`) unless a run sets its own. On
+#: one core lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
+#: RATTLE on the pendulum: 3.3e7 at 256, 2.9e7 at 1024, 5.6e6 at 4096, memory-bound), so
+#: larger ensembles are better run as several such chunks, side by side on the workers.
+#: XLA:CPU compiles the vmapped loop by batch width, and a lane's round-off can depend on
+#: it: on the pendulum over 2 s every width from 2 to 1024 gave RATTLE's lanes bit for
+#: bit, and 2 to 768 baumgarte-dopri5's, while 1024 lanes of dopri5 differed from 768 by
+#: 1.1e-15 in q and 2048 of RATTLE from 1024 by 2e-15 (and in some Newton counts). At most
+#: 512 lanes per chunk keeps every lane measured the same whatever the chunking.
+LANES_PER_CHUNK = 512
+
+
+def lane_ranges(lanes: int, per_chunk: int) -> tuple[tuple[int, int], ...]:
+    """The chunks of an ensemble of ``lanes`` lanes, as ``(first, stop)`` ranges of nearly
+    equal size: ``ceil(lanes / per_chunk)`` of them, so each holds at most ``per_chunk``
+    lanes, but never a lane alone (at most ``lanes // 2`` chunks: a batch of one is
+    compiled otherwise than a larger batch, and lobatto3ab3's lane differed at round-off).
+
+    Lane ``i`` is drawn alike in any chunk (:mod:`problems.ensemble`) and integrated by
+    the same arithmetic, which XLA compiled alike for every width measured up to
+    :data:`LANES_PER_CHUNK`, so such chunkings changed no result, only which workers share
+    the work; wider chunks can change a lane's round-off.
+    """
+    count = max(1, min(-(-lanes // per_chunk), lanes // 2))
+    bounds = [k * lanes // count for k in range(count + 1)]
+    return tuple(zip(bounds[:-1], bounds[1:]))
+
+
+def jax_device(name: str) -> jax.Device | None:
+    """The JAX device that ``name`` (one of :data:`DEVICES`) selects in this process:
+    the first GPU, or the CPU; ``None`` where ``gpu`` is asked for and JAX sees none."""
+    try:
+        gpus = jax.devices("gpu")
+    except RuntimeError:  # no GPU platform in this JAX
+        gpus = []
+    if name == "cpu" or not gpus:
+        return None if name == "gpu" else jax.devices("cpu")[0]
+    return gpus[0]
+
+
+def check_device(device: str, where: str) -> None:
+    """A device is one of :data:`DEVICES`, and ``gpu`` one that JAX sees here."""
+    if device not in DEVICES:
+        raise InputError(f"{where}: device = {device!r} must be one of {', '.join(DEVICES)}")
+    if jax_device(device) is None:
+        raise InputError(f"{where}: device = 'gpu', but JAX sees no GPU on this machine "
+                         f"(platforms: {', '.join(sorted({d.platform for d in jax.devices()}))})"
+                         f"; use device auto or cpu")
+
+
 #: The recording grid of each lane of an ensemble: the loop keeps these per lane, so they are
 #: what bounds its memory (a few kilobytes per lane); the windows are enough for the drift
 #: classes, and the samples are the initial, middle and final states.
 ENSEMBLE_GRID = {"n_windows": 64, "n_samples": 3}
 
 
-def check_ensemble(lanes, seed, where: str) -> None:
-    """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes and a seed >= 0."""
+def check_ensemble(lanes, seed, where: str, per_chunk=LANES_PER_CHUNK) -> None:
+    """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes, a seed >= 0 and at
+    least 2 lanes per chunk (a chunk of one lane would compile otherwise than a batch)."""
     if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= MAX_LANES:
         raise InputError(f"{where}: ensemble = {lanes!r} must be a whole number of lanes "
                          f"from 1 to {MAX_LANES}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise InputError(f"{where}: seed = {seed!r} must be a whole number >= 0")
+    if isinstance(per_chunk, bool) or not isinstance(per_chunk, int) or per_chunk < 2:
+        raise InputError(f"{where}: lanes_per_chunk = {per_chunk!r} must be a whole number "
+                         f">= 2")
 
 
 def check_timeout(value, where: str) -> None:
@@ -140,15 +209,18 @@ def cluster_address(address: str) -> tuple[int | None, str | None]:
 
 
 def known(problem: ProblemSpec, integrator: IntegratorSpec, case, integ, asked: RunSpec,
-          grid: dict, version: str) -> Run:
+          grid: dict, version: str, chunks: int | None = None) -> Run:
     """The record's :class:`~benchmarks.records.Run` part of a run of ``integ`` on
-    ``case``, its ``run_key`` computed for code version ``version``."""
+    ``case``, its ``run_key`` computed for code version ``version`` (an ensemble's chunks
+    are not in it: they change no result)."""
     opts = integ.options()
     resolved = {"problem": problem.name, "arguments": problem.kwargs,
                 "params": dict(case.params), "integrator": integrator.name, "options": opts,
                 "t_end": case.t_end, "grid": grid}
     if asked.lanes is not None:
         resolved["ensemble"] = [asked.lanes, asked.seed]
+        if (asked.device or "auto") != "auto":  # where the lanes run can change round-off
+            resolved["device"] = asked.device
     return Run(problem=str(asked.problem), integrator=str(asked.integrator), h=opts.get("h"),
                rtol=opts.get("rtol"), atol=opts.get("atol"), t_end=case.t_end,
                options=json.dumps(opts, default=str),
@@ -156,7 +228,8 @@ def known(problem: ProblemSpec, integrator: IntegratorSpec, case, integ, asked: 
                t0=case.t0, energy_scale=case.energy_scale, nominal_order=integ.nominal_order,
                sensitive=int(bool(case.system.sensitive)), family=integ.family,
                **({} if asked.lanes is None else
-                  dict(lanes=asked.lanes, seed=asked.seed, batched=int(integ.batched))))
+                  dict(lanes=asked.lanes, seed=asked.seed, batched=int(integ.batched),
+                       chunks=chunks)))
 
 
 def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = None,
@@ -215,12 +288,16 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
                                               case.with_t_end(spec.t_end))
             case = cases[problem, spec.t_end]
             integ = integrators.make(method, h=spec.h, rtol=spec.rtol, atol=spec.atol)
-            run_grid = grid
+            run_grid, chunks, device = grid, (), spec.device or "auto"
             if spec.lanes is not None:
-                check_ensemble(spec.lanes, spec.seed, spec.label())
+                per_chunk = spec.lanes_per_chunk or LANES_PER_CHUNK
+                check_ensemble(spec.lanes, spec.seed, spec.label(), per_chunk)
+                check_device(device, spec.label())
                 run_grid = {**grid, **{k: min(v, grid.get(k, v))
                                        for k, v in ENSEMBLE_GRID.items()}}
-            run = known(problem, method, case, integ, spec, run_grid, version)
+                chunks = lane_ranges(spec.lanes, per_chunk)
+            run = known(problem, method, case, integ, spec, run_grid, version,
+                        len(chunks) or None)
             _check_steps(run, int(case.q0.size), spec.label(), allow_large, notes)
             limit = spec.timeout if spec.timeout is not None else timeout
             out.append(PlannedRun(problem, IntegratorSpec(method.name,
@@ -228,7 +305,7 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
                                                           method.text, method.origin),
                                   spec.t_end, tuple(run_grid.items()),
                                   None if math.isinf(limit) else float(limit), run,
-                                  spec.origin))
+                                  spec.origin, device, chunks))
         except (InputError, AuditError, SpecError) as exc:
             raise InputError(one_line(f"{where}{exc}")) from None
         except Exception as exc:  # user code or a defect met while building: one line

@@ -78,6 +78,10 @@ THREAD_ENV = {
     "NUMEXPR_NUM_THREADS": "1",
 }
 XLA_THREAD_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+#: Workers that share a GPU (ensembles on ``device = gpu`` or ``auto``) allocate its memory
+#: as they need it: by default each JAX process takes 75 % of it when it starts, so a
+#: second worker would run out. No effect without a GPU.
+GPU_ENV = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
 
 #: A worker is replaced after this many tasks, which bounds the growth of JAX's caches.
 MAX_TASKS_PER_WORKER = 200
@@ -103,11 +107,12 @@ def one_blas_thread() -> None:
 
 
 def thread_environment() -> dict[str, str]:
-    """The environment variables a worker starts with (thread limits added to ours, and
-    :data:`integrators.loop.KERNEL_FLAG`, under which XLA compiles our time loops into one
-    kernel)."""
+    """The environment variables a worker starts with (thread limits added to ours,
+    :data:`GPU_ENV`, :data:`integrators.loop.KERNEL_FLAG`, under which XLA compiles our
+    time loops into one kernel, and :data:`integrators.loop.COMPILE_FLAG`, which makes
+    compiling cheaper)."""
     flags = kernel_environment()["XLA_FLAGS"]
-    return {**THREAD_ENV, "XLA_FLAGS": f"{flags} {XLA_THREAD_FLAGS}".strip()}
+    return {**THREAD_ENV, **GPU_ENV, "XLA_FLAGS": f"{flags} {XLA_THREAD_FLAGS}".strip()}
 
 
 def timing_note(placement: str, repeats: int) -> str:

@@ -53,6 +53,7 @@ COLUMNS = (
     "energy_growth", "reference_floor", "family", "setup_cache",
     "lanes", "seed", "batched", "failed_fraction", *(
         f"{metric}_q{q}" for metric in ("pos", "vel", "energy") for q in (0, 50, 90, 100)),
+    "chunks", "device",
 )
 
 #: The columns that depend on what was computed and not on how long it took: equal, bit for
@@ -69,12 +70,12 @@ ACCURACY_COLUMNS = (
 #: Columns that hold text; every other column holds a number or nothing.
 TEXT_COLUMNS = ("problem", "integrator", "status", "message", "q_final", "v_final",
                 "invariant_errors", "sampling", "options", "params", "run_key",
-                "linear_solver", "pos_growth", "energy_growth", "family")
+                "linear_solver", "pos_growth", "energy_growth", "family", "device")
 
 #: Columns that hold whole numbers (pandas reads them as floats where some are empty).
 WHOLE_COLUMNS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
                  "n_lin_solves", "fail_step", "repeats", "pattern_nnz", "nominal_order",
-                 "sensitive", "lanes", "seed", "batched")
+                 "sensitive", "lanes", "seed", "batched", "chunks")
 
 #: Environment variable that pins the code version (see :func:`provenance`).
 CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
@@ -167,7 +168,9 @@ class RunSpec:
     ``timeout`` is the run's time limit in seconds (``None``: the batch default); ``origin``
     says where the run was asked for (a suite file and line), for error messages. Neither
     takes part in comparisons. ``lanes`` (``None``: a single run) and ``seed`` ask for an
-    ensemble of that many initial states (:mod:`problems.ensemble`).
+    ensemble of that many initial states (:mod:`problems.ensemble`), ``device`` where it
+    runs (``auto``, ``cpu`` or ``gpu``; ``None``: ``auto``) and ``lanes_per_chunk`` the
+    size of its chunks (``None``: :data:`benchmarks.plan.LANES_PER_CHUNK`).
     """
 
     problem: object
@@ -180,6 +183,8 @@ class RunSpec:
     origin: str = field(default="", compare=False)
     lanes: int | None = None
     seed: int | None = None
+    device: str | None = None
+    lanes_per_chunk: int | None = None
 
     def label(self) -> str:
         """The run's :func:`identity`, for progress lines and messages."""
@@ -194,8 +199,9 @@ class Run:
     integrator's resolved options (``None`` where it has none) and ``t_end`` the resolved
     horizon; ``options`` and ``params`` JSON of every option and physical parameter; then
     what the case and the method declare, and the ``run_key`` (:func:`run_key`); for an
-    ensemble its number of ``lanes``, its ``seed`` and whether they ran in one compiled loop
-    (``batched`` 1) or one after another (0).
+    ensemble its number of ``lanes``, its ``seed``, whether they ran in one compiled loop
+    (``batched`` 1) or one after another (0), and the number of ``chunks`` of lanes it ran
+    in, each a task of its own (:func:`benchmarks.plan.lane_ranges`).
     """
 
     problem: str
@@ -215,6 +221,7 @@ class Run:
     lanes: int | None = None
     seed: int | None = None
     batched: int | None = None
+    chunks: int | None = None
 
 
 @dataclass(frozen=True)
@@ -251,8 +258,9 @@ class Timing:
 
 @dataclass(frozen=True)
 class Work:
-    """The work counters (:data:`integrators.base.COUNTERS`), the linear solver that ran
-    and the number of entries of the pattern it factorised."""
+    """The work counters (:data:`integrators.base.COUNTERS`), the linear solver that ran,
+    the number of entries of the pattern it factorised, and the JAX platform the run's
+    compiled code ran on (``cpu``, ``gpu``; an ensemble whose chunks ran on both, ``cpu+gpu``)."""
 
     n_steps: int | None = None
     n_rejected: int | None = None
@@ -262,6 +270,7 @@ class Work:
     n_lin_solves: int | None = None
     linear_solver: str | None = None
     pattern_nnz: int | None = None
+    device: str | None = None
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ import integrators
 import problems
 from benchmarks import compilation, suites
 from benchmarks.executors import load_plugins
-from benchmarks.plan import expand
+from benchmarks.plan import DEVICES, LANES_PER_CHUNK, expand
 from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
 from studies import STUDIES
 
@@ -67,6 +67,13 @@ def parser() -> argparse.ArgumentParser:
                    help="run each run from K initial states near the problem's own (lane 0: "
                         "its own), in one compiled loop where the method allows")
     p.add_argument("--seed", type=int, help="seed of the ensemble's initial states (default 0)")
+    p.add_argument("--device", choices=DEVICES,
+                   help="where an ensemble's loop runs: auto (a GPU when JAX sees one, else "
+                        "the CPU; the default), cpu or gpu; single runs run on the CPU")
+    p.add_argument("--lanes-per-chunk", type=int, metavar="L",
+                   help=f"split an ensemble into chunks of at most L lanes (nearly equal, "
+                        f"never one lane alone), each a task of its own on the workers "
+                        f"(default {LANES_PER_CHUNK})")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed solves of each run at least (autorange; the median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")
@@ -119,7 +126,7 @@ def listing() -> str:
 #: ranges as in suite files, and ``--jobs``.
 ARGUMENT_RANGES = {
     **{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout", "repeats",
-                                           "ensemble", "seed")},
+                                           "ensemble", "seed", "lanes_per_chunk")},
     "jobs": (lambda x: x >= 1, "at least 1"),
 }
 
@@ -150,7 +157,8 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
             raise InputError("an ad-hoc selection needs both --problems and --integrators")
         try:
             runs = expand(args.problems, args.integrators, args.h, args.rtol, args.atol,
-                          args.t_end, lanes=args.ensemble, seed=args.seed)
+                          args.t_end, lanes=args.ensemble, seed=args.seed,
+                          device=args.device, lanes_per_chunk=args.lanes_per_chunk)
         except ValueError as exc:
             raise InputError(one_line(exc)) from None
         return runs, dict(suite="ad-hoc", repeats=args.repeats or 3, timeout=args.timeout,
@@ -165,6 +173,9 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
         runs = [dataclasses.replace(r, lanes=args.ensemble or r.lanes or 1,
                                     seed=args.seed if args.seed is not None else r.seed or 0)
                 for r in runs]
+    for option in ("device", "lanes_per_chunk"):
+        if getattr(args, option) is not None:
+            runs = [dataclasses.replace(r, **{option: getattr(args, option)}) for r in runs]
     # The command line's engine wins over the suite's.
     cluster = args.cluster or (suite.cluster if args.jobs is None else None)
     return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,

@@ -57,7 +57,7 @@ import pandas as pd
 from benchmarks.files import new_file_mode
 from benchmarks.records import COLUMNS, TEXT_COLUMNS, WHOLE_COLUMNS, Record, Status, provenance
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 STORE_NAME = "driftbench.sqlite"
 #: Statuses of runs that a resumed suite must run again.
 UNFINISHED = (Status.ERROR, Status.TIMEOUT)
@@ -176,19 +176,31 @@ def _v2_to_v3(db: sqlite3.Connection) -> None:
     db.execute("PRAGMA user_version = 3")
 
 
-def _v3_to_v4(db: sqlite3.Connection) -> None:
-    """Version 3 -> 4: the ensemble columns (``lanes``, ``seed``, ``batched``, the
-    quantiles), empty for the single runs that version 3 held."""
+def _add_columns(db: sqlite3.Connection, version: int) -> None:
+    """Add the columns of :data:`COLUMNS` that ``runs`` lacks (empty for the runs it holds)
+    and mark the schema ``version``."""
     have = set(_table_columns(db, "runs"))
     for column in COLUMNS:
         if column not in have:
             db.execute(f'ALTER TABLE runs ADD COLUMN "{column}"')
-    db.execute("PRAGMA user_version = 4")
+    db.execute(f"PRAGMA user_version = {version}")
+
+
+def _v3_to_v4(db: sqlite3.Connection) -> None:
+    """Version 3 -> 4: the ensemble columns (``lanes``, ``seed``, ``batched``, the
+    quantiles), empty for the single runs that version 3 held."""
+    _add_columns(db, 4)
+
+
+def _v4_to_v5(db: sqlite3.Connection) -> None:
+    """Version 4 -> 5: an ensemble's ``chunks`` and the ``device`` a run ran on, empty for
+    the runs that version 4 held."""
+    _add_columns(db, 5)
 
 
 #: version -> the function that upgrades a database of that version by one.
 MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3,
-                                                                3: _v3_to_v4}
+                                                                3: _v3_to_v4, 4: _v4_to_v5}
 
 
 def _version(db: sqlite3.Connection) -> int:

@@ -19,8 +19,10 @@ tables of runs and ``studies``; each group runs every combination of its lists::
 ``h`` applies to fixed-step integrators, ``rtol`` and ``atol`` to adaptive ones. A group's
 ``timeout`` overrides the suite's, and ``--timeout`` on the command line overrides both.
 ``ensemble = K`` (and ``seed = S``, default 0) runs each of the group's runs from ``K``
-initial states (:mod:`problems.ensemble`); ``--ensemble`` and ``--seed`` on the command
-line override them for every group.
+initial states (:mod:`problems.ensemble`), ``device = "auto"`` (or ``"cpu"``, ``"gpu"``)
+says where their loops run and ``lanes_per_chunk = L`` how many lanes a chunk of them
+holds at least (:func:`benchmarks.plan.lane_ranges`); ``--ensemble``, ``--seed``,
+``--device`` and ``--lanes-per-chunk`` on the command line override them for every group.
 
 ``studies = ["flexible-modal"]`` names studies that are not integrator runs: each is a
 function ``run(out: Path) -> dict[str, DataFrame]`` looked up by name in
@@ -59,7 +61,7 @@ from pathlib import Path
 
 import integrators
 import problems
-from benchmarks.plan import cluster_address, expand
+from benchmarks.plan import DEVICES, cluster_address, expand
 from benchmarks.records import InputError, RunSpec
 from problems.ensemble import MAX_LANES
 from problems.spec import SpecError, suggest
@@ -74,7 +76,8 @@ TOP_KEYS = {"description": "a string", "group": "an array of [[group]] tables",
             "studies": STRINGS, "cluster": "a string", "load": STRINGS, "targets": NUMBERS}
 GROUP_KEYS = {"problems": STRINGS, "integrators": STRINGS, "h": NUMBERS, "rtol": NUMBERS,
               "atol": NUMBERS, "t_end": NUMBER, "timeout": NUMBER,
-              "ensemble": "a whole number", "seed": "a whole number"}
+              "ensemble": "a whole number", "seed": "a whole number", "device": "a string",
+              "lanes_per_chunk": "a whole number"}
 
 
 def _is_number(v) -> bool:
@@ -104,6 +107,8 @@ RANGES = {
     "targets": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
     "ensemble": (lambda x: 1 <= x <= MAX_LANES, f"a number of lanes from 1 to {MAX_LANES}"),
     "seed": (lambda x: x >= 0, "at least 0"),
+    "device": (lambda x: x in DEVICES, f"one of {', '.join(DEVICES)}"),
+    "lanes_per_chunk": (lambda x: x >= 2, "at least 2"),
 }
 
 
@@ -254,7 +259,8 @@ def load(name: str) -> Suite:
                                [float(x) for x in group.get("atol", [])],
                                float(group["t_end"]) if "t_end" in group else None,
                                float(group["timeout"]) if "timeout" in group else None,
-                               origin, group.get("ensemble"), group.get("seed")))
+                               origin, group.get("ensemble"), group.get("seed"),
+                               group.get("device"), group.get("lanes_per_chunk")))
         except SpecError as exc:
             fail(line_of("integrators"), f"[[group]] {k + 1}: {exc}")
     timeout = float(data["timeout"]) if "timeout" in data else None

@@ -16,6 +16,14 @@ The time loop is ours, compiled with ``lax.while_loop`` around diffrax's ``solve
 and ``PIDController.adapt_step_size`` (the same calls as diffrax's own loop), so that every
 accepted step is measured without storing the steps: the loop runs in chunks of a bounded
 number of steps and hands each chunk to :class:`integrators.record.Recorder`.
+
+An ensemble of the adaptive pairs (:meth:`BaumgarteEmbeddedRK.prepare_ensemble`) runs the
+same step attempts under ``jax.vmap`` in one compiled loop (:func:`run_lanes`): each lane
+has its own time, step size, controller state, counters and failure code, and keeps its
+windows and samples inside the loop (:func:`integrators.record.tracker`), so memory is
+bounded per lane. The vmapped ``while_loop`` runs until the last lane has ended; a lane
+that has ended (at ``t_end``, on a failure, at ``max_steps``) is carried unchanged, so a
+lane that fails stops only itself.
 """
 
 from __future__ import annotations
@@ -34,7 +42,8 @@ import optimistix
 from integrators.base import Failure, Grid, Integrator
 from integrators.fixed import FixedStep
 from integrators.loop import put
-from integrators.record import Recorder, batch_length
+from integrators.record import (Recorder, batch_length, ended, kept, series, series_names,
+                                tracker)
 from linalg.compiled import compile_lifted
 from problems.case import Case
 from problems.mechanics import Mechanics
@@ -185,6 +194,40 @@ def initial_state(y0, params, *, mech, schur, solver, control) -> LoopState:
                      zero, jnp.zeros((), jnp.int32))
 
 
+def running(st: LoopState, t_end: float, max_steps) -> jax.Array:
+    """Whether a run goes on from ``st``: before ``t_end``, no failure, fewer than
+    ``max_steps`` accepted steps."""
+    return (st.t < t_end) & (st.code == 0) & (st.n_accepted < max_steps)
+
+
+def attempt(term, solver, control, params, error_order, st: LoopState
+            ) -> tuple[LoopState, jax.Array]:
+    """One step attempt from ``st``: the next loop state and whether the step was accepted
+    (then the state's ``t`` and ``y`` are the new point; otherwise they are unchanged and
+    ``code`` says whether the attempt failed)."""
+    tiny = 16 * np.finfo(np.float64).eps
+    y1, y_error, _, sstate, result = solver.step(
+        term, st.t, st.t_next, st.y, None, st.solver_state, False)
+    keep, t_new, t_next, cstate = control.adapt(params, st, y1, y_error, error_order)
+    finite = jnp.all(jnp.isfinite(y1))
+    underflow = ~keep & (t_next - st.t <= tiny * jnp.maximum(1.0, jnp.abs(st.t)))
+    code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER,
+                     jnp.where(keep & ~finite, Failure.NON_FINITE,
+                               jnp.where(underflow, Failure.UNDERFLOW, Failure.NONE)))
+    accept = keep & (code == 0)
+
+    def pick(new, old):
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)
+
+    return LoopState(
+        # A failed attempt keeps its end time, for the message.
+        t=jnp.where(accept, t_new, st.t), t_next=jnp.where(code == 0, t_next, st.t_next),
+        y=pick(y1, st.y),
+        solver_state=pick(sstate, st.solver_state), controller_state=cstate,
+        n_accepted=st.n_accepted + accept, n_rejected=st.n_rejected + ~keep,
+        n_attempts=st.n_attempts + 1, code=code.astype(jnp.int32)), accept
+
+
 @partial(jax.jit, static_argnames=("mech", "schur", "solver", "control"))
 def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
     """Make step attempts until a batch of accepted steps is full, or the run ends.
@@ -198,38 +241,17 @@ def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
     term = _term(mech, schur, params)
     error_order = solver.error_order(term)
     rows, size = batch_length(mech.n), 2 * mech.n
-    t_end, max_steps = control.t_end, params["max_steps"]
-    tiny = 16 * np.finfo(np.float64).eps
 
     def cond(carry):
         k, st, _, _ = carry
-        return (k < rows) & (st.t < t_end) & (st.code == 0) & (st.n_accepted < max_steps)
+        return (k < rows) & running(st, control.t_end, params["max_steps"])
 
     def body(carry):
         k, st, buf_t, buf_y = carry
-        y1, y_error, _, sstate, result = solver.step(
-            term, st.t, st.t_next, st.y, None, st.solver_state, False)
-        keep, t_new, t_next, cstate = control.adapt(params, st, y1, y_error, error_order)
-        finite = jnp.all(jnp.isfinite(y1))
-        underflow = ~keep & (t_next - st.t <= tiny * jnp.maximum(1.0, jnp.abs(st.t)))
-        code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER,
-                         jnp.where(keep & ~finite, Failure.NON_FINITE,
-                                   jnp.where(underflow, Failure.UNDERFLOW, Failure.NONE)))
-        accept = keep & (code == 0)
-
-        def pick(new, old):
-            return jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)
-
-        st = LoopState(
-            # A failed attempt keeps its end time, for the message.
-            t=jnp.where(accept, t_new, st.t), t_next=jnp.where(code == 0, t_next, st.t_next),
-            y=pick(y1, st.y),
-            solver_state=pick(sstate, st.solver_state), controller_state=cstate,
-            n_accepted=st.n_accepted + accept, n_rejected=st.n_rejected + ~keep,
-            n_attempts=st.n_attempts + 1, code=code.astype(jnp.int32))
+        st, accept = attempt(term, solver, control, params, error_order, st)
         # In-place row updates rather than scatters (see integrators.loop on why).
-        buf_t = put(buf_t, k, jnp.where(accept, t_new, buf_t[k]))
-        buf_y = put(buf_y, k, jnp.where(accept, y1, buf_y[k]))
+        buf_t = put(buf_t, k, jnp.where(accept, st.t, buf_t[k]))
+        buf_y = put(buf_y, k, jnp.where(accept, st.y, buf_y[k]))
         return k + accept, st, buf_t, buf_y
 
     carry = (jnp.zeros((), jnp.int64), state, jnp.zeros(rows), jnp.zeros((rows, size)))
@@ -237,20 +259,77 @@ def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
     return state, buf_t, buf_y, k
 
 
+@partial(jax.jit, static_argnames=("mech", "schur", "solver", "control", "grid"))
+def run_lanes(states: LoopState, params, *, mech, schur, solver, control, grid):
+    """Run every lane of ``states`` (a :class:`LoopState` with a leading lane axis) to its
+    end, in one compiled loop under ``jax.vmap``.
+
+    Returns ``(states, tallies)``: each lane's final state and its windows and samples
+    (:class:`integrators.record.Tally`), measured at every accepted step as the single
+    run's :class:`~integrators.record.Recorder` measures them.
+    """
+    term = _term(mech, schur, params)
+    error_order = solver.error_order(term)
+    start, add = tracker(mech, grid)
+    n = mech.n
+
+    def lane(state):
+        def cond(carry):
+            return running(carry[0], control.t_end, params["max_steps"])
+
+        def body(carry):
+            st, tally = carry
+            st, accept = attempt(term, solver, control, params, error_order, st)
+            return st, add(tally, accept, st.t, st.y[:n], st.y[n:])
+
+        tally = start(state.t, state.y[:n], state.y[n:])
+        return jax.lax.while_loop(cond, body, (state, tally))
+
+    return jax.vmap(lane)(states)
+
+
+def _static(mech: Mechanics, params: dict, max_steps: int, solver, control,
+            linear_solver: str) -> tuple[dict, dict, dict]:
+    """The traced options (``params`` as float64 arrays, ``max_steps`` among them), the
+    static arguments of the compiled loops and what the record says of the linear solver."""
+    params = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in params.items()}
+    params["max_steps"] = jnp.asarray(max_steps, dtype=jnp.int64)
+    schur = mech.schur(linear_solver)
+    return (params, dict(mech=mech, schur=schur, solver=solver, control=control),
+            dict(linear_solver=schur.name, pattern_nnz=schur.nnz))
+
+
+def _ending(state: LoopState, solver, control, max_steps: int, grid: Grid
+            ) -> tuple[str, dict[str, int]]:
+    """The failure message (empty for a run that reached ``t_end``) and the work counters
+    of a run that ended in ``state`` (host values)."""
+    code, t = int(state.code), float(state.t)
+    steps, attempts = int(state.n_accepted), int(state.n_attempts)
+    tableau = solver.tableau
+    fsal = int(tableau.fsal)
+    # Per attempt every stage but an FSAL method's first (reused from the last accepted
+    # step) is evaluated; an FSAL method evaluates its first stage once.
+    evals = control.initial_evals + fsal + attempts * (tableau.num_stages - fsal)
+    counts = {"n_steps": steps, "n_rejected": int(state.n_rejected), "n_f_evals": evals,
+              "n_jac_evals": 0, "n_newton": 0, "n_lin_solves": evals}
+    if code == 0 and t < grid.t_end:
+        code = Failure.MAX_STEPS
+    message = ""
+    if code:
+        what = Failure(code).message.format(max_steps=max_steps, t_end=grid.t_end)
+        message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
+    return message, counts
+
+
 def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: dict,
           max_steps: int, sampling: str, linear_solver: str = "auto"):
     """Compile the loop and return ``solve()`` (runs chunks until done, then reports)."""
     n = mech.n
-    params = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in params.items()}
-    params["max_steps"] = jnp.asarray(max_steps, dtype=jnp.int64)
-    schur = mech.schur(linear_solver)
-    static = dict(mech=mech, schur=schur, solver=solver, control=control)
-    solver_record = dict(linear_solver=schur.name, pattern_nnz=schur.nnz)
+    params, static, solver_record = _static(mech, params, max_steps, solver, control,
+                                            linear_solver)
     y0_device = jnp.asarray(y0)
     state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
     chunk = compile_lifted(run_chunk, state0, params, **static)
-    tableau = solver.tableau
-    fsal = int(tableau.fsal)
     recorder = Recorder(mech, grid)
 
     def solve():
@@ -261,23 +340,43 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
             k = int(k)
             assert buf_y.dtype == np.float64, "the loop must run in float64"
             recorder.extend(buf_t[:k], buf_y[:k, :n], buf_y[:k, n:])
-            code, t = int(state.code), float(state.t)
-            if code or t >= grid.t_end or int(state.n_accepted) >= max_steps:
+            if int(state.code) or float(state.t) >= grid.t_end or \
+                    int(state.n_accepted) >= max_steps:
                 break
-        steps, attempts = int(state.n_accepted), int(state.n_attempts)
-        # Per attempt every stage but an FSAL method's first (reused from the last
-        # accepted step) is evaluated; an FSAL method evaluates its first stage once.
-        evals = control.initial_evals + fsal + attempts * (tableau.num_stages - fsal)
-        counts = {"n_steps": steps, "n_rejected": int(state.n_rejected), "n_f_evals": evals,
-                  "n_jac_evals": 0, "n_newton": 0, "n_lin_solves": evals}
+        message, counts = _ending(state, solver, control, max_steps, grid)
         y = state.y
-        if code == 0 and t < grid.t_end:
-            code = Failure.MAX_STEPS
-        message = ""
-        if code:
-            what = Failure(code).message.format(max_steps=max_steps, t_end=grid.t_end)
-            message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
-        return recorder.trajectory(message, t, y[:n], y[n:], counts, sampling, **solver_record)
+        return recorder.trajectory(message, float(state.t), y[:n], y[n:], counts, sampling,
+                                   **solver_record)
+
+    return solve
+
+
+def drive_lanes(mech: Mechanics, grid: Grid, y0s: np.ndarray, solver, control,
+                params: dict, max_steps: int, sampling: str, linear_solver: str = "auto"):
+    """Compile the loop of an ensemble from the initial states ``y0s`` (one row per lane)
+    and return ``solve()``, which runs it (:func:`run_lanes`) and returns one
+    :class:`~integrators.base.Trajectory` per lane, as :func:`drive` would for that lane."""
+    n = mech.n
+    params, static, solver_record = _static(mech, params, max_steps, solver, control,
+                                            linear_solver)
+    states0 = jax.vmap(partial(initial_state, **static), in_axes=(0, None))(
+        jnp.asarray(y0s, jnp.float64), params)
+    compiled = run_lanes.lower(states0, params, grid=grid, **static).compile()
+    names = series_names(mech)
+
+    def solve():
+        states, tallies = jax.device_get(compiled(states0, params))
+        assert states.y.dtype == np.float64, "the loop must run in float64"
+        trajs = []
+        for i in range(len(states.t)):
+            state = jax.tree_util.tree_map(lambda a: a[i], states)
+            tally = jax.tree_util.tree_map(lambda a: a[i], tallies)
+            message, counts = _ending(state, solver, control, max_steps, grid)
+            trajs.append(ended(message, float(state.t), state.y[:n], state.y[n:], counts,
+                               sampling, series(grid, names, tally.wins, tally.hit),
+                               kept(tally.samp_t, tally.samp_q, tally.samp_v, tally.filled),
+                               **solver_record))
+        return trajs
 
     return solve
 
@@ -464,12 +563,32 @@ class BaumgarteEmbeddedRK(BaumgarteBase):
         if not (self.dt0 >= 0 and self.dtmax > 0 and self.max_steps >= 1):
             raise ValueError(f"{name}: need dt0 >= 0, dtmax > 0 and max_steps >= 1")
 
-    def prepare(self, case: Case, grid: Grid):
-        self.check()
+    #: The lanes of an ensemble run in one compiled loop (:func:`drive_lanes`).
+    batched: ClassVar[bool] = True
+
+    #: Where the residuals and the energy are measured.
+    SAMPLING: ClassVar[str] = "every internal step (accepted steps)"
+
+    def _loop(self, grid: Grid) -> tuple[EmbeddedControl, dict]:
+        """The step control and the traced options of the loop over ``grid``'s horizon."""
         control = EmbeddedControl(float(grid.t0), float(grid.t_end), self.dt0 == 0.0)
         params = {name: getattr(self, name) for name in (
             "alpha", "beta", "rtol", "atol", "pcoeff", "icoeff", "dcoeff", "safety",
             "factormin", "factormax", "dt0", "dtmax")}
+        return control, params
+
+    def prepare(self, case: Case, grid: Grid):
+        self.check()
+        control, params = self._loop(grid)
         y0 = np.concatenate([case.q0, case.v0])
         return drive(case.mech, grid, y0, SOLVERS[self.solver](), control, params,
-                     self.max_steps, "every internal step (accepted steps)", self.linear_solver)
+                     self.max_steps, self.SAMPLING, self.linear_solver)
+
+    def prepare_ensemble(self, case: Case, grid: Grid, q0s, v0s):
+        """One compiled loop for the whole ensemble (:func:`drive_lanes`): each lane takes
+        its own steps, and the loop runs until the slowest lane has ended."""
+        self.check()
+        control, params = self._loop(grid)
+        y0s = np.concatenate([np.asarray(q0s), np.asarray(v0s)], axis=1)
+        return drive_lanes(case.mech, grid, y0s, SOLVERS[self.solver](), control, params,
+                           self.max_steps, self.SAMPLING, self.linear_solver)

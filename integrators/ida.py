@@ -168,8 +168,21 @@ def consistent_values(mech: Mechanics, blocks: int, t0: float, q0: np.ndarray,
     Accelerations and multipliers come from the index-1 system
     (:meth:`Mechanics.accelerations`); ``lam'`` is its derivative along the flow,
     ``(q', v', t') = (v, a, 1)``, so that IDA's first predictor is right in every
-    component; ``mu = mu' = 0``.
+    component; ``mu = mu' = 0``. ``schur`` solves with ``G M^{-1} G^T`` (default: dense).
+
+    Raises
+    ------
+    ValueError
+        When ``schur`` is SuperLU on more than ``FALLBACK_MAX`` constraints: ``lam'`` is a
+        derivative of the multipliers and the SuperLU callback has none, so such a system
+        takes the dense solve here, which is refused at that size.
     """
+    if schur is not None and schur.name == "superlu":
+        if mech.m > FALLBACK_MAX:
+            raise ValueError(f"the initial multiplier derivative of this system ({mech.m} "
+                             "constraints, no narrow band) needs a differentiable solve with "
+                             f"G M^-1 G^T; only up to {FALLBACK_MAX} is supported")
+        schur = mech.schur("dense")
     args = (jnp.asarray(t0, dtype=jnp.float64), jnp.asarray(q0), jnp.asarray(v0))
     y0, yp0 = compile_lifted(_consistent, *args, mech=mech, blocks=blocks,
                              schur=mech.schur("dense") if schur is None else schur)(*args)
@@ -349,16 +362,7 @@ class IDA(Integrator):
         linsolver = self.linsolver
         if linsolver == "auto":
             linsolver = "sparse" if m > DENSE_MAX and self.jacobian == "autodiff" else "dense"
-        # The initial lam' is a derivative of the multipliers: the SuperLU callback has
-        # none, so a system that would use it takes the dense solve here (up to
-        # FALLBACK_MAX constraints; beyond, the run stops with this message).
         schur = mech.schur("dense" if linsolver != "sparse" else "auto")
-        if schur.name == "superlu":
-            if m > FALLBACK_MAX:
-                raise ValueError(f"IDA: the initial multiplier derivative of this system "
-                                 f"({m} constraints, no narrow band) needs a differentiable "
-                                 f"solve with G M^-1 G^T; only up to {FALLBACK_MAX} is supported")
-            schur = mech.schur("dense")
         y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0, schur)
         redundant = ""
         if linsolver != "sparse" or m <= RANK_CHECK_MAX:

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from integrators.base import COUNTERS, Failure, Grid, Status, Trajectory
-from integrators.record import measurer
+from integrators.record import measurer, series_names
 from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics
 
@@ -66,6 +66,15 @@ from problems.mechanics import Mechanics
 #: 1 kB, is below what one step of the smallest problem touches; the value here puts no
 #: practical limit on it.
 KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
+
+#: XLA:CPU option: emit fusions with XLA's LLVM IR emitters instead of its newer MLIR
+#: fusion emitters. Compiling is most of a suite's set-up, and this takes about a third
+#: less CPU time to compile (andrews / radau5 18.1 and 18.8 s against 10.5 and 12.6 s;
+#: car-axis / genalpha 4.4 against 2.1 to 2.8 s; flyball-governor / hht 5.8 and 6.6
+#: against 3.2 to 4.4 s: ``benchmarks/perf/compile_profile.py``, CPU time, load about 5),
+#: with the same kernels' speed (rattle on sps-receiver against C: 0.85 against 0.74 of
+#: C per CPU second in one noisy pair of runs, the same Newton iterations and residuals).
+COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 #: Compiled loops kept for reuse (each holds its executable; a sweep needs one).
 CACHE_SIZE = 8
@@ -77,15 +86,18 @@ WORK = tuple(key for key in COUNTERS if key != "n_steps")
 Step = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, dict]]
 
 
-def kernel_environment(environ: dict[str, str] | None = None) -> dict[str, str]:
-    """``XLA_FLAGS`` of ``environ`` (default: this process's) with :data:`KERNEL_FLAG` added.
+def kernel_environment(environ: dict[str, str] | None = None,
+                       options: tuple[str, ...] = (KERNEL_FLAG, COMPILE_FLAG)) -> dict[str, str]:
+    """``XLA_FLAGS`` of ``environ`` (default: this process's) with ``options`` added
+    (default :data:`KERNEL_FLAG` and :data:`COMPILE_FLAG`).
 
     Returns a one-entry dict to merge into the environment of a process that is yet to
     start, or into ``os.environ`` before this process first uses JAX.
     """
     flags = (os.environ if environ is None else environ).get("XLA_FLAGS", "")
-    if KERNEL_FLAG not in flags.split():
-        flags = f"{flags} {KERNEL_FLAG}".strip()
+    for option in options:
+        if option not in flags.split():
+            flags = f"{flags} {option}".strip()
     return {"XLA_FLAGS": flags}
 
 
@@ -245,10 +257,11 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         (:mod:`linalg.compiled`).
     """
     plan = Plan.make(grid, h)
-    # t_end is not in the loop (N is an argument): other horizons share it.
+    # t_end is not in the loop (N is an argument): other horizons share it. A loop is
+    # compiled for the device it runs on (jax.default_device), which the key holds too.
     width = jax.tree_util.tree_leaves(carry0)[0].shape[0] if lanes else None
     cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples,
-                                          width)
+                                          width, str(jax.config.jax_default_device))
     compiled = _LOOPS.get(cache_key) if cache_key is not None else None
     args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
@@ -263,7 +276,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
                 _LOOPS.popitem(last=False)
     else:
         _LOOPS.move_to_end(cache_key)
-    names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+    names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
 
     def solve():

@@ -766,7 +766,9 @@ class RadauIIA(Integrator):
         n = mech.n
         form = FORMULATIONS[self.formulation]
         t0, t_end = float(grid.t0), float(grid.t_end)
-        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0)
+        schur = mech.schur(self.linear_solver)
+        y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0,
+                                    schur=schur)
         f64 = partial(jnp.asarray, dtype=jnp.float64)
         params = Params(f64(t_end), f64(self.rtol), f64(self.atol), f64(self.fnewt),
                         f64(self.newton_tol),
@@ -774,7 +776,6 @@ class RadauIIA(Integrator):
                         jnp.asarray(self.max_steps, jnp.int64))
         recorder = Recorder(mech, grid)
         sampling = "every internal step (accepted steps)"
-        schur = mech.schur(self.linear_solver)
         solver_record = dict(linear_solver=schur.name, pattern_nnz=schur.nnz)
         if schur.name != "dense" and self.formulation == "ggl":
             # Built outside the traces that use it: built inside one, its arrays would be

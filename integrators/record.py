@@ -13,13 +13,18 @@ here is by time over the horizon ``[t0, t_end]`` of length ``T``:
 
 Points arrive one at a time (IDA's one-step mode) or a batch at a time (a chunked compiled
 loop); they are measured in batches by one compiled, vectorised call and reduced at once,
-so memory is one batch plus the windows and samples.
+so memory is one batch plus the windows and samples. An ensemble's compiled loop, whose
+lanes cannot hand their steps to the host one lane at a time, keeps the same windows and
+samples inside the loop (:func:`tracker`), with the same index arithmetic
+(:func:`window_and_slot`), and its lanes' trajectories are assembled by the same functions
+(:func:`series`, :func:`kept`, :func:`ended`).
 """
 
 from __future__ import annotations
 
 import math
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +65,114 @@ def measurer(mech: Mechanics):
     return measure
 
 
+def series_names(mech: Mechanics) -> list[str]:
+    """The names of the windowed series, in the order of :func:`measurer`'s values."""
+    return ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+
+
+def sample_count(grid: Grid) -> int:
+    """Sample slots kept over the horizon (at least the first and the last)."""
+    return max(2, grid.n_samples)
+
+
+def window_and_slot(t, grid: Grid, xp=np):
+    """Window index and sample slot of the time(s) ``t`` (the layout of the module notes).
+
+    ``xp`` is ``numpy`` (the host :class:`Recorder`) or ``jax.numpy`` (the compiled loop
+    of :func:`tracker`): one formula, so both put a point in the same window and slot.
+    """
+    frac = (t - grid.t0) / (grid.t_end - grid.t0)
+    W, S = grid.n_windows, sample_count(grid)
+    w = xp.clip(xp.ceil(frac * W).astype(xp.int64) - 1, 0, W - 1)
+    slot = xp.clip(xp.floor(frac * (S - 1) + 1e-9).astype(xp.int64), 0, S - 1)
+    return w, slot
+
+
+def series(grid: Grid, names: list[str], wins: np.ndarray, hit: np.ndarray
+           ) -> dict[str, np.ndarray]:
+    """The drift series: window end times and per-window maxima ``wins`` of the windows
+    that some point reached (``hit``)."""
+    W = grid.n_windows
+    ends = grid.t0 + (grid.t_end - grid.t0) * (np.arange(W) + 1) / W
+    out = {"t": ends[hit]}
+    out.update({name: wins[hit, i] for i, name in enumerate(names)})
+    return out
+
+
+def kept(samp_t: np.ndarray, samp_q: np.ndarray, samp_v: np.ndarray, filled: np.ndarray
+         ) -> dict[str, np.ndarray]:
+    """The kept states (the ``filled`` slots), in time order."""
+    return {"t": samp_t[filled], "q": samp_q[filled], "v": samp_v[filled]}
+
+
+def ended(failure: str, t_final: float, q_final, v_final, counts: dict[str, int],
+          sampling: str, windows: dict[str, np.ndarray], samples: dict[str, np.ndarray],
+          extra: dict[str, float] | None = None, linear_solver: str = "dense",
+          pattern_nnz: int | None = None) -> Trajectory:
+    """The :class:`Trajectory` of a recorded run that ended at ``t_final`` after
+    ``counts["n_steps"]`` steps: ``ok`` for an empty ``failure``, else ``failed`` with that
+    message at the next step."""
+    q_final = np.asarray(q_final)
+    assert q_final.dtype == np.float64, "the backend must hand over float64 states"
+    status, fail_step, fail_time = Status.OK, None, None
+    if failure:
+        status, fail_step = Status.FAILED, counts["n_steps"] + 1
+        fail_time = None if math.isnan(t_final) else float(t_final)
+    return Trajectory(status, failure, float(t_final), q_final, np.asarray(v_final),
+                      windows, samples, dict(counts), sampling, fail_step, fail_time,
+                      dict(extra or {}), linear_solver, pattern_nnz)
+
+
+class Tally(NamedTuple):
+    """What :func:`tracker` keeps of one lane inside a compiled loop: the reference energy
+    and invariants, the window maxima and which windows were reached, and the sample slots
+    (times, states, which are filled)."""
+
+    E0: jax.Array
+    I0: jax.Array
+    wins: jax.Array
+    hit: jax.Array
+    samp_t: jax.Array
+    samp_q: jax.Array
+    samp_v: jax.Array
+    filled: jax.Array
+
+
+def tracker(mech: Mechanics, grid: Grid):
+    """``(start, add)``: :class:`Recorder`'s bookkeeping as pure functions for a compiled
+    loop, one point at a time.
+
+    ``start(t0, q0, v0) -> Tally`` takes ``H0`` and the invariants at the initial point and
+    records it; ``add(tally, keep, t, q, v) -> Tally`` records the point where ``keep``
+    (an accepted step) and returns ``tally`` unchanged otherwise. Memory is the windows and
+    the samples, whatever the number of steps.
+    """
+    measure = measurer(mech)
+    W, S, n = grid.n_windows, sample_count(grid), mech.n
+
+    def add(tally: Tally, keep, t, q, v) -> Tally:
+        w, slot = window_and_slot(t, grid, jnp)
+        m = measure(t, q, v, tally.E0, tally.I0)
+        fresh = keep & ~tally.filled[slot]
+        return tally._replace(
+            wins=tally.wins.at[w].set(jnp.where(keep, jnp.maximum(tally.wins[w], m),
+                                                tally.wins[w])),
+            hit=tally.hit.at[w].set(tally.hit[w] | keep),
+            samp_t=tally.samp_t.at[slot].set(jnp.where(fresh, t, tally.samp_t[slot])),
+            samp_q=tally.samp_q.at[slot].set(jnp.where(fresh, q, tally.samp_q[slot])),
+            samp_v=tally.samp_v.at[slot].set(jnp.where(fresh, v, tally.samp_v[slot])),
+            filled=tally.filled.at[slot].set(tally.filled[slot] | fresh))
+
+    def start(t0, q0, v0) -> Tally:
+        I0 = mech.invariant_values(q0, v0)
+        tally = Tally(mech.energy(q0, v0), I0, jnp.zeros((W, 3 + I0.size)),
+                      jnp.zeros(W, bool), jnp.zeros(S), jnp.zeros((S, n)),
+                      jnp.zeros((S, n)), jnp.zeros(S, bool))
+        return add(tally, jnp.asarray(True), t0, q0, v0)
+
+    return start, add
+
+
 @partial(jax.jit, static_argnames="mech")
 def measure_batch(t, q, v, E0, I0, *, mech: Mechanics):
     """:func:`measurer` over a batch of points (compiled once per system and batch length)."""
@@ -84,7 +197,7 @@ class Recorder:
         self.mech, self.grid = mech, grid
         self.n = mech.n
         self.rows = batch_length(mech.n)
-        self.names = ["pos", "vel", "energy"] + [f"inv:{s}" for s in mech.system.invariants]
+        self.names = series_names(mech)
         n_inv = len(mech.system.invariants)
         f64 = jnp.float64
         spec = jax.ShapeDtypeStruct
@@ -93,8 +206,7 @@ class Recorder:
             spec((self.rows, self.n), f64), spec((), f64), spec((n_inv,), f64), mech=mech)
         self._reference = compile_lifted(reference_values, spec((self.n,), f64),
                                          spec((self.n,), f64), mech=mech)
-        self.span = grid.t_end - grid.t0
-        self.n_samples = max(2, grid.n_samples)
+        self.n_samples = sample_count(grid)
         self._t = np.empty(self.rows)
         self._q = np.empty((self.rows, self.n))
         self._v = np.empty((self.rows, self.n))
@@ -144,13 +256,9 @@ class Recorder:
             buf[k:] = buf[k - 1]
         vals = np.asarray(self._measure(self._t, self._q, self._v, self._E0, self._I0))[:k]
         t = self._t[:k]
-        frac = (t - self.grid.t0) / self.span
-        W = self.grid.n_windows
-        w = np.clip(np.ceil(frac * W).astype(np.int64) - 1, 0, W - 1)
+        w, slots = window_and_slot(t, self.grid)
         np.maximum.at(self.wins, w, vals)
         self.hit[w] = True
-        slots = np.clip(np.floor(frac * (self.n_samples - 1) + 1e-9).astype(np.int64),
-                        0, self.n_samples - 1)
         first_slot, first_row = np.unique(slots, return_index=True)
         new = ~self.filled[first_slot]
         first_slot, first_row = first_slot[new], first_row[new]
@@ -163,17 +271,12 @@ class Recorder:
     def windows(self) -> dict[str, np.ndarray]:
         """The drift series: window end times and per-window maxima (reached windows)."""
         self.flush()
-        W = self.grid.n_windows
-        ends = self.grid.t0 + self.span * (np.arange(W) + 1) / W
-        out = {"t": ends[self.hit]}
-        out.update({name: self.wins[self.hit, i] for i, name in enumerate(self.names)})
-        return out
+        return series(self.grid, self.names, self.wins, self.hit)
 
     def samples(self) -> dict[str, np.ndarray]:
         """The kept states, in time order."""
         self.flush()
-        keep = self.filled
-        return {"t": self.samp_t[keep], "q": self.samp_q[keep], "v": self.samp_v[keep]}
+        return kept(self.samp_t, self.samp_q, self.samp_v, self.filled)
 
     def trajectory(self, failure: str, t_final: float, q_final: np.ndarray,
                    v_final: np.ndarray, counts: dict[str, int], sampling: str,
@@ -181,13 +284,6 @@ class Recorder:
                    pattern_nnz: int | None = None) -> Trajectory:
         """The :class:`Trajectory` of the recorded run, which ended at ``t_final`` after
         ``counts["n_steps"]`` steps: ``ok`` for an empty ``failure``, else ``failed`` with
-        that message at the next step."""
-        q_final = np.asarray(q_final)
-        assert q_final.dtype == np.float64, "the backend must hand over float64 states"
-        status, fail_step, fail_time = Status.OK, None, None
-        if failure:
-            status, fail_step = Status.FAILED, counts["n_steps"] + 1
-            fail_time = None if math.isnan(t_final) else float(t_final)
-        return Trajectory(status, failure, float(t_final), q_final, np.asarray(v_final),
-                          self.windows(), self.samples(), dict(counts), sampling,
-                          fail_step, fail_time, dict(extra or {}), linear_solver, pattern_nnz)
+        that message at the next step (:func:`ended`)."""
+        return ended(failure, t_final, q_final, v_final, counts, sampling, self.windows(),
+                     self.samples(), extra, linear_solver, pattern_nnz)

@@ -154,8 +154,9 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     under their one policy for redundant constraints (:mod:`linalg.dense`).
 
     ``q`` and ``v`` may hold a batch of states on a leading axis (an ensemble's lanes,
-    :mod:`problems.ensemble`): each is projected, in one compiled call per iteration,
-    until the largest ``|g|`` of the batch is at most ``tol``.
+    :mod:`problems.ensemble`): each is projected, in one compiled call per iteration, and
+    each stops iterating once its own ``|g|`` is at most ``tol``, so that a state's
+    projection does not depend on the others in its batch.
     """
     schur = mech.schur("auto")
     step, g = _projection_step(mech, schur), mech.g
@@ -168,9 +169,10 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     step = compile_lifted(step, q, t, g(q, t))
     for _ in range(max_iter):
         r = g(q, t)
-        if float(jnp.max(jnp.abs(r), initial=0.0)) <= tol:
+        active = jnp.max(jnp.abs(r), axis=-1, initial=0.0, keepdims=True) > tol
+        if not bool(jnp.any(active)):
             break
-        q = q - step(q, t, r)
+        q = jnp.where(active, q - step(q, t, r), q)
     v = jnp.asarray(v, dtype=jnp.float64)
     residual = mech.vel_residual if np.ndim(v) == 1 else jax.vmap(mech.vel_residual,
                                                                   in_axes=(0, 0, None))

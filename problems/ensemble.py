@@ -35,8 +35,11 @@ MAX_LANES = 1 << 20
 TRACE_PROBES = 16
 
 
-def draw(case: Case, lanes: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``(q0s, v0s)``, each ``(lanes, n)``: the ensemble's consistent initial states.
+def draw(case: Case, lanes: int, seed: int = 0, first: int = 0
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """``(q0s, v0s)``, each ``(lanes - first, n)``: the consistent initial states of the
+    ensemble's lanes ``first`` to ``lanes - 1`` (a chunk of it: each lane is drawn and
+    projected on its own, so it is the same whatever the chunk it is drawn in).
 
     Raises
     ------
@@ -47,6 +50,8 @@ def draw(case: Case, lanes: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]
     """
     if not 1 <= lanes <= MAX_LANES:
         raise ValueError(f"an ensemble has 1 to {MAX_LANES} lanes, not {lanes}")
+    if not 0 <= first < lanes:
+        raise ValueError(f"lane {first} is not one of the ensemble's {lanes} lanes")
     n = case.q0.size
     spec = case.perturbation
     mask = np.ones(n)
@@ -59,19 +64,26 @@ def draw(case: Case, lanes: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]
     trace = float(np.mean(jax.jit(jax.vmap(
         lambda z: z @ case.mech.mass_times(jnp.asarray(case.q0), z)))(probes)))
     sigma_v = float(np.sqrt(2.0 * spec.velocity * case.energy_scale / trace))
+    drawn = range(max(first, 1), lanes)
     noise = np.array([np.random.default_rng([seed, i]).standard_normal(2 * n)
-                      for i in range(1, lanes)]).reshape(lanes - 1, 2 * n)
+                      for i in drawn]).reshape(len(drawn), 2 * n)
     q = case.q0 + sigma_q * mask * noise[:, :n]
     v = case.v0 + sigma_v * mask * noise[:, n:]
-    if lanes > 1:
-        q, v = project(case.mech, q, v, case.t0)
+    if len(drawn):
+        # XLA compiles a batch of one state otherwise than a larger batch (v differed at
+        # 1e-17), so a lone lane is projected beside a copy of itself, as in any batch.
+        twice = np.repeat if len(drawn) == 1 else lambda a, k, axis: a
+        q, v = project(case.mech, twice(q, 2, axis=0), twice(v, 2, axis=0), case.t0)
+        q, v = q[:len(drawn)], v[:len(drawn)]
         error = np.maximum(*_residuals(case.mech, q, v, case.t0))
         bad = ~(error <= CONSISTENT_TOL)  # NaN is bad too
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"{case.name}: lane {i + 1} of the ensemble of seed {seed} is "
-                             f"{error[i]:.3g} off the constraints after projection (a "
+            raise ValueError(f"{case.name}: lane {drawn[i]} of the ensemble of seed {seed} "
+                             f"is {error[i]:.3g} off the constraints after projection (a "
                              f"perturbation too large for the case?)")
+    if first > 0:
+        return q, v
     return np.concatenate([case.q0[None], q]), np.concatenate([case.v0[None], v])
 
 

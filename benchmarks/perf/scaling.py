@@ -2,8 +2,8 @@
 
 What runs
     Every family (default ``rattle``, ``lobatto3ab3``, ``baumgarte-rk4`` and ``ida-ggl``) on
-    ``chain:N``, ``sps-ring:N`` (hub rows on) and ``rigid-chain:N`` for N = 64, 256, 1024,
-    4096, 16384, each
+    ``chain:N``, ``sps-ring:N`` (hub rows on), ``rigid-chain:N`` and ``four-bar:N`` for N =
+    64, 256, 1024, 4096, 16384, each
     point in a fresh process, N ascending, the families of one N one after another so that
     a change in the machine's load hits them alike. Each point takes :data:`STEPS` steps of
     a fixed step size per problem (:data:`STEP_SIZES`); ``ida-ggl`` runs at rtol = atol =
@@ -26,6 +26,13 @@ What runs
     at most 4.8e-7 against an energy scale of 1.3e9 for rattle, lobatto3ab3 and
     baumgarte-rk4; max ``|g|`` at most 3.1e-11 with coordinates of order 1e4). Per body, ``n = 7`` and ``m = 4`` against the chain's 2 and
     1 per link; the bars compare rattle's time per body with its time per link.
+
+    ``four-bar:N`` (IFToMM A02: N parallelogram loops in natural coordinates, a constant
+    banded mass; the augmented system's band ``L D L^T`` above
+    :data:`linalg.schur.DENSE_KKT_MAX` constraints) runs at ``h = 1e-3``: the mechanism
+    has one degree of freedom whatever N, so its motion does not speed up with N, and the
+    100 steps end well before its first singular configuration (t = 0.72 s);
+    ``python -m benchmarks.perf.four_bar`` runs it through them over the full 20 s.
 
     At each chain N the C yardstick ``benchmarks/perf/yardstick/rattle_chain.c`` runs the same
     steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
@@ -116,7 +123,7 @@ from benchmarks.records import EXIT_INPUT, CommandParser
 FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
 SIZES = (64, 256, 1024, 4096, 16384)
 #: Fixed step per problem, stable at N = 16384 (module docstring).
-STEP_SIZES = {"chain": 1e-5, "sps-ring": 1e-4, "rigid-chain": 5e-4}
+STEP_SIZES = {"chain": 1e-5, "sps-ring": 1e-4, "rigid-chain": 5e-4, "four-bar": 1e-3}
 STEPS = 100
 #: Tolerance of the adaptive families (atol = rtol).
 RTOL = 1e-8
