@@ -44,6 +44,7 @@ from integrators.fixed import FixedStep
 from integrators.loop import put
 from integrators.record import (Recorder, batch_length, ended, kept, series, series_names,
                                 tracker)
+from linalg.compiled import compile_lifted
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -326,8 +327,9 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
     n = mech.n
     params, static, solver_record = _static(mech, params, max_steps, solver, control,
                                             linear_solver)
-    state0 = initial_state(jnp.asarray(y0), params, **static)
-    chunk = run_chunk.lower(state0, params, **static).compile()
+    y0_device = jnp.asarray(y0)
+    state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
+    chunk = compile_lifted(run_chunk, state0, params, **static)
     recorder = Recorder(mech, grid)
 
     def solve():

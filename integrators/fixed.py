@@ -35,6 +35,7 @@ import jax.numpy as jnp
 
 from integrators.base import COUNTERS, Failure, Grid, Integrator
 from integrators.loop import WORK, attempt, march
+from linalg.compiled import compile_lifted
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -81,8 +82,8 @@ class FixedStep(Integrator):
         mech = case.mech
         schur = self.linear_algebra(mech)
         # Compiled once; run eagerly, each autodiff operation would compile on its own.
-        carry0 = jax.jit(partial(self.start, mech, schur))(
-            jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
+        args = (jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
+        carry0 = compile_lifted(partial(self.start, mech, schur), *args)(*args)
         return self._march(mech, schur, grid, carry0, lanes=False)
 
     def prepare_ensemble(self, case: Case, grid: Grid, q0s, v0s):

@@ -29,6 +29,7 @@ from sksundae.ida import IDA as SundialsIDA
 
 from integrators.base import Grid, Integrator
 from integrators.record import Recorder
+from linalg.compiled import compile_lifted
 from linalg.pattern import SparseJacobian
 from linalg.schur import DENSE_MAX
 from linalg.sparse import FALLBACK_MAX
@@ -133,23 +134,22 @@ def iteration_matrix(t, y, yp, cj, *, mech: Mechanics, formulation: str):
     return jax.jacfwd(lambda z: F(t, z, yp + cj * (z - y)))(y)
 
 
-def sparse_iteration_matrix(mech: Mechanics, formulation: str, y0, yp0):
-    """The iteration matrix's CSC pattern and a compiled ``(t, y, y', cj) -> CSC data``."""
+def sparse_iteration_matrix(mech: Mechanics, formulation: str, t0: float, y0, yp0):
+    """The iteration matrix's CSC pattern and ``(t, y, y', cj) -> CSC data``, compiled for
+    arguments of the types of ``(t0, y0, yp0, 1.0)``."""
     F = FORMULATIONS[formulation].residual(mech)
-    t0 = jnp.asarray(0.0)
-    jac = SparseJacobian(lambda z: F(t0, z, jnp.asarray(yp0) + (z - jnp.asarray(y0))),
+    jac = SparseJacobian(lambda z: F(jnp.asarray(0.0), z, jnp.asarray(yp0) + (z - jnp.asarray(y0))),
                          jnp.asarray(y0))
     size = len(y0)
     pattern = sp.csc_matrix((np.arange(1, jac.nnz + 1, dtype=np.float64), (jac.rows, jac.cols)),
                             shape=(size, size))
     order = jnp.asarray(pattern.data.astype(np.int64) - 1)
 
-    @jax.jit
     def data(t, y, yp, cj):
         values = jac.values(y, lambda z: F(t, z, yp + cj * (z - y)))
         return jnp.take(values, order)
 
-    return pattern, data, jac.nnz
+    return pattern, compile_lifted(data, t0, y0, yp0, 1.0), jac.nnz
 
 
 @partial(jax.jit, static_argnames=("mech", "blocks", "schur"))
@@ -183,9 +183,9 @@ def consistent_values(mech: Mechanics, blocks: int, t0: float, q0: np.ndarray,
                              "constraints, no narrow band) needs a differentiable solve with "
                              f"G M^-1 G^T; only up to {FALLBACK_MAX} is supported")
         schur = mech.schur("dense")
-    y0, yp0 = _consistent(jnp.asarray(t0, dtype=jnp.float64), jnp.asarray(q0),
-                          jnp.asarray(v0), mech=mech, blocks=blocks,
-                          schur=mech.schur("dense") if schur is None else schur)
+    args = (jnp.asarray(t0, dtype=jnp.float64), jnp.asarray(q0), jnp.asarray(v0))
+    y0, yp0 = compile_lifted(_consistent, *args, mech=mech, blocks=blocks,
+                             schur=mech.schur("dense") if schur is None else schur)(*args)
     return np.asarray(y0, dtype=np.float64), np.asarray(yp0, dtype=np.float64)
 
 
@@ -377,13 +377,13 @@ class IDA(Integrator):
                          "iteration matrix is singular, which IDA's linear solvers cannot "
                          "solve" if rank < m else "")
         static = dict(mech=mech, formulation=self.formulation)
-        residual = dae_residual.lower(t0, y0, yp0, **static).compile()
+        residual = compile_lifted(dae_residual, t0, y0, yp0, **static)
         sparse = {}
         if linsolver == "sparse":
-            pattern, matrix, nnz = sparse_iteration_matrix(mech, self.formulation, y0, yp0)
+            pattern, matrix, nnz = sparse_iteration_matrix(mech, self.formulation, t0, y0, yp0)
             sparse = dict(sparsity=pattern, nthreads=1)
         else:
-            matrix = iteration_matrix.lower(t0, y0, yp0, 1.0, **static).compile()
+            matrix = compile_lifted(iteration_matrix, t0, y0, yp0, 1.0, **static)
         r0 = np.asarray(residual(t0, y0, yp0))
         J0 = np.asarray(matrix(t0, y0, yp0, 1.0))
         assert r0.dtype == np.float64 and J0.dtype == np.float64, "IDA must run in float64"

@@ -58,6 +58,7 @@ import numpy as np
 
 from integrators.base import COUNTERS, Failure, Grid, Status, Trajectory
 from integrators.record import measurer, series_names
+from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics
 
 #: XLA:CPU option: emit any run of operations (while loops included) whose cost model
@@ -252,7 +253,8 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     solve : callable
         ``solve() -> Trajectory`` (with ``lanes``, a list of them, one per lane); its
         attribute ``compiled`` is the compiled loop (for diagnostics such as whether XLA
-        made it one kernel).
+        made it one kernel), its large constants passed as arguments
+        (:mod:`linalg.compiled`).
     """
     plan = Plan.make(grid, h)
     # t_end is not in the loop (N is an argument): other horizons share it. A loop is
@@ -267,7 +269,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         loop = _loop(mech, grid, step, observe)
         if lanes:
             loop = jax.vmap(loop, in_axes=(0, None, None, None, None))
-        compiled = jax.jit(loop).lower(*args).compile()
+        compiled = compile_lifted(loop, *args)
         if cache_key is not None:
             _LOOPS[cache_key] = compiled
             while len(_LOOPS) > CACHE_SIZE:

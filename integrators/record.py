@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from integrators.base import Grid, Status, Trajectory
+from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics
 
 #: Host memory one batch of points may take (bytes); fixes the batch length.
@@ -38,8 +39,14 @@ BATCH_BYTES = 1 << 22
 
 
 def batch_length(n: int) -> int:
-    """Points per batch for ``n`` coordinates: about :data:`BATCH_BYTES`, in 64..4096."""
-    return int(min(4096, max(64, BATCH_BYTES // (8 * (2 * n + 1)))))
+    """Points per batch for ``n`` coordinates: about :data:`BATCH_BYTES`, in 1..4096.
+
+    No floor above one: the batch lives in the compiled chunk's output, on the host and in
+    the batched measurement (whose temporaries are several states per point), so 64
+    points of rigid-chain:N=16384 (n = 114688) took 117 MB per buffer and 688 MB for the
+    measurement. A system that large takes milliseconds per step, against tens of
+    microseconds for handing a chunk over."""
+    return int(min(4096, max(1, BATCH_BYTES // (8 * (2 * n + 1)))))
 
 
 def measurer(mech: Mechanics):
@@ -194,12 +201,11 @@ class Recorder:
         n_inv = len(mech.system.invariants)
         f64 = jnp.float64
         spec = jax.ShapeDtypeStruct
-        self._measure = measure_batch.lower(
-            spec((self.rows,), f64), spec((self.rows, self.n), f64),
-            spec((self.rows, self.n), f64), spec((), f64), spec((n_inv,), f64),
-            mech=mech).compile()
-        self._reference = reference_values.lower(
-            spec((self.n,), f64), spec((self.n,), f64), mech=mech).compile()
+        self._measure = compile_lifted(
+            measure_batch, spec((self.rows,), f64), spec((self.rows, self.n), f64),
+            spec((self.rows, self.n), f64), spec((), f64), spec((n_inv,), f64), mech=mech)
+        self._reference = compile_lifted(reference_values, spec((self.n,), f64),
+                                         spec((self.n,), f64), mech=mech)
         self.n_samples = sample_count(grid)
         self._t = np.empty(self.rows)
         self._q = np.empty((self.rows, self.n))

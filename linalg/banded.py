@@ -153,19 +153,21 @@ class Banded(Schur):
         self.pattern, self.G_values, self.mass_diagonal = pattern, G_values, mass_diagonal
         self.nnz = pattern.nnz
         self.gathers = pattern.gathers
-        self.core, self.border, self.inverse = (jnp.asarray(pattern.core),
-                                                jnp.asarray(pattern.border),
-                                                jnp.asarray(pattern.inverse))
+        # On the device once (int32): a copy per call is a constant per call site
+        # (linalg.compiled).
+        self.core, self.border, self.inverse, self.cols = (
+            jnp.asarray(a, dtype=jnp.int32)
+            for a in (pattern.core, pattern.border, pattern.inverse, pattern.cols))
+        self.dinv = jnp.asarray(1.0 / mass_diagonal)
 
     def factor(self, q, t) -> Factor:
         pat = self.pattern
-        index, core_entries, core_cols, border_index = self.gathers
+        first, second, core_entries, core_cols, border_index = self.gathers
         w, mc, nb = pat.bandwidth, len(pat.core), len(pat.border)
         Gx = jnp.concatenate([self.G_values(q, t), jnp.zeros(1)])
-        dinv = jnp.asarray(1.0 / self.mass_diagonal)
-        dx = jnp.concatenate([dinv, jnp.zeros(1)])
-        Sb = jnp.sum(gather(Gx, index[..., 0]) * gather(Gx, index[..., 1])
-                     * gather(dx, index[..., 2]), axis=1)
+        # 1 / M_jj of each entry's column: both entries of a pair share it.
+        dx = jnp.concatenate([gather(self.dinv, self.cols), jnp.zeros(1)])
+        Sb = jnp.sum(gather(Gx, first) * gather(Gx, second) * gather(dx, first), axis=1)
         Sb = Sb.reshape(mc, w + 1)
         Dc = unit_diagonal(Sb[:, 0])
         shifted = jnp.stack([jnp.concatenate([jnp.zeros(k), Dc[:mc - k]]) for k in range(w + 1)], 1)
@@ -178,7 +180,7 @@ class Banded(Schur):
         if nb == 0:
             return Factor((L, Dc, None, None, None, None), norm, jnp.all(jnp.isfinite(L)))
         Gb = gather(Gx, border_index)                             # (nb, n)
-        MinvGbT = (Gb * dinv[None, :]).T                          # (n, nb)
+        MinvGbT = (Gb * self.dinv[None, :]).T                    # (n, nb)
         Scb = jnp.einsum("ir,irb->ib", gather(Gx, core_entries), gather(MinvGbT, core_cols))
         Sbb = Gb @ MinvGbT
         Db = unit_diagonal(jnp.diag(Sbb))

@@ -18,9 +18,23 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from linalg.compiled import give_back_heap
+
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
 #: the dense border of the banded solver.
 BORDER_MIN = 32
+
+
+def traced_sparsity(detect: Callable, f: Callable, x: jax.Array) -> asdex.SparsityPattern:
+    """``detect(f, x)`` (``asdex.jacobian_sparsity`` or ``asdex.hessian_sparsity``), then the
+    heap pages it freed given back to the system.
+
+    The tracing holds a Python set per element of every intermediate array of ``f``;
+    freed, that memory would stay resident (:func:`linalg.compiled.give_back_heap`).
+    """
+    pattern = detect(f, x)
+    give_back_heap()
+    return pattern
 
 
 def gather(a: jax.Array, index: jax.Array) -> jax.Array:
@@ -53,7 +67,7 @@ class SparseJacobian:
     """
 
     def __init__(self, f: Callable[[jax.Array], jax.Array], x: jax.Array):
-        pattern = asdex.jacobian_sparsity(f, x)
+        pattern = traced_sparsity(asdex.jacobian_sparsity, f, x)
         self.shape = (pattern.m, pattern.n)
         self.rows = np.asarray(pattern.rows, dtype=np.int64)
         self.cols = np.asarray(pattern.cols, dtype=np.int64)
@@ -146,37 +160,36 @@ class Pattern:
 
     @cached_property
     def gathers(self):
-        """Index arrays that assemble the band of ``S`` and the border blocks by gathers."""
+        """Index arrays (``int32``) that assemble the band of ``S`` and the border blocks by
+        gathers: ``first`` and ``second`` (band slots by pairs), the core rows of ``G``
+        padded (entries and columns) and the border rows of ``G`` dense."""
         m, n, w = self.m, self.n, self.bandwidth
         mc = len(self.core)
         position = np.full(m, -1)
         position[self.core] = np.arange(mc)
         sentinel = self.nnz  # index of an appended zero
         # Band slots: every pair of core entries sharing a column contributes
-        # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)).
-        order = np.argsort(self.cols, kind="stable")
-        cols_sorted = self.cols[order]
-        starts = np.searchsorted(cols_sorted, np.arange(n + 1))
-        slot, first, second, column = [], [], [], []
-        for j in range(n):
-            es = [e for e in order[starts[j]:starts[j + 1]] if position[self.rows[e]] >= 0]
-            for e1 in es:
-                for e2 in es:
-                    p1, p2 = position[self.rows[e1]], position[self.rows[e2]]
-                    if p1 >= p2:
-                        slot.append(p1 * (w + 1) + (p1 - p2))
-                        first.append(e1)
-                        second.append(e2)
-                        column.append(j)
-        slot = np.asarray(slot, dtype=np.int64)
+        # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)). The pairs of a
+        # column are listed e1-major, the columns in ascending order and the entries of a
+        # column by index, so that each slot sums its terms in a fixed order.
+        in_core = np.flatnonzero(position[self.rows] >= 0)
+        order = in_core[np.argsort(self.cols[in_core], kind="stable")]
+        per_col = np.bincount(self.cols[order], minlength=n)
+        col_start = np.cumsum(per_col) - per_col
+        repeat = per_col[self.cols[order]]
+        first = np.repeat(order, repeat)
+        within = np.arange(len(first)) - np.repeat(np.cumsum(repeat) - repeat, repeat)
+        second = order[np.repeat(col_start[self.cols[order]], repeat) + within]
+        p1, p2 = position[self.rows[first]], position[self.rows[second]]
+        keep = p1 >= p2
+        first, second, slot = first[keep], second[keep], (p1 * (w + 1) + (p1 - p2))[keep]
         per_slot = np.bincount(slot, minlength=mc * (w + 1))
         depth = max(1, int(per_slot.max(initial=0)))
-        index = np.full((mc * (w + 1), depth, 3), [sentinel, sentinel, n], dtype=np.int64)
+        pairs = np.full((2, mc * (w + 1), depth), sentinel, dtype=np.int32)
         by_slot = np.argsort(slot, kind="stable")
         rank = np.arange(len(slot)) - np.repeat(np.cumsum(per_slot) - per_slot, per_slot)
-        index[slot[by_slot], rank] = np.stack([np.asarray(first)[by_slot],
-                                               np.asarray(second)[by_slot],
-                                               np.asarray(column)[by_slot]], axis=1)
+        pairs[0, slot[by_slot], rank] = first[by_slot]
+        pairs[1, slot[by_slot], rank] = second[by_slot]
         # Core rows of G, padded (for S_cb = G_c M^{-1} G_b^T).
         row_counts = np.bincount(position[self.rows][position[self.rows] >= 0], minlength=mc)
         width = max(1, int(row_counts.max(initial=0)))
@@ -195,7 +208,7 @@ class Pattern:
         where[self.border] = np.arange(len(self.border))
         e_border = np.flatnonzero(where[self.rows] >= 0)
         border_index[where[self.rows[e_border]], self.cols[e_border]] = e_border
-        return (jnp.asarray(index), jnp.asarray(core_entries), jnp.asarray(core_cols),
-                jnp.asarray(border_index))
+        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in (
+            pairs[0], pairs[1], core_entries, core_cols, border_index))
 
 

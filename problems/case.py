@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics, System
 from problems.source import located
 
@@ -161,9 +162,11 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     step, g = _projection_step(mech, schur), mech.g
     if np.ndim(q) == 2:
         step, g = jax.vmap(step, in_axes=(0, None, 0)), jax.vmap(g, in_axes=(0, None))
-    step, g = jax.jit(step), jax.jit(g)
+    g = jax.jit(g)
     t = jnp.asarray(t, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
+    # The solver's index arrays as arguments, not constants (linalg.compiled).
+    step = compile_lifted(step, q, t, g(q, t))
     for _ in range(max_iter):
         r = g(q, t)
         active = jnp.max(jnp.abs(r), axis=-1, initial=0.0, keepdims=True) > tol

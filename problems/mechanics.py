@@ -51,6 +51,7 @@ import scipy.sparse as sp  # noqa: E402
 
 from linalg.blocks import Blocks  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
+from linalg.pattern import traced_sparsity  # noqa: E402
 from linalg.schur import DENSE_KKT_MAX, choose  # noqa: E402
 
 Array = jax.Array
@@ -152,6 +153,9 @@ class Mechanics:
                 else np.any(mass - np.diag(np.diag(mass))))
             if diagonal:
                 self.mass_diagonal = mass if mass.ndim == 1 else np.asarray(mass.diagonal()).copy()
+                # On the device once: a copy per call is a constant of its own in every
+                # compiled program that calls it (linalg.blocks says what that cost).
+                self._mass_diagonal = jnp.asarray(self.mass_diagonal)
             else:
                 self.mass_matrix = sp.csr_matrix(mass)
                 if self.m > DENSE_KKT_MAX and rcm(self.mass_matrix)[2] <= KKT_BAND_MAX:
@@ -174,8 +178,8 @@ class Mechanics:
         (structural, like ``G``'s)."""
         if self.kinetic is None:
             return None
-        pattern = asdex.hessian_sparsity(lambda v: self.kinetic(jnp.zeros(self.n), v),
-                                         jnp.zeros(self.n))
+        pattern = traced_sparsity(asdex.hessian_sparsity,
+                                  lambda v: self.kinetic(jnp.zeros(self.n), v), jnp.zeros(self.n))
         blocks = Blocks(np.asarray(pattern.rows), np.asarray(pattern.cols), self.n)
         return blocks if blocks.block_diagonal else None
 
@@ -183,13 +187,13 @@ class Mechanics:
         """The Cholesky factors of the blocks of ``M(q)`` (:attr:`mass_blocks`), from one
         product ``M(q) s`` per seed."""
         blocks = self.mass_blocks
-        products = jax.vmap(lambda s: self.mass_times(q, s))(jnp.asarray(blocks.seeds()))
+        products = jax.vmap(lambda s: self.mass_times(q, s))(blocks.seeds())
         return blocks.factor(blocks.values(products))
 
     def mass(self, q: Array) -> Array:
         """Mass matrix ``M(q)`` (dense; :meth:`mass_times` avoids forming it)."""
         if self.mass_diagonal is not None:
-            return jnp.diag(jnp.asarray(self.mass_diagonal))
+            return jnp.diag(self._mass_diagonal)
         if self.kinetic is not None or self.mass_band is not None:
             return jax.jacfwd(lambda v: self.mass_times(q, v))(jnp.zeros(self.n))
         return self._M if self.constant_mass else self._mass_fn(q)
@@ -197,7 +201,7 @@ class Mechanics:
     def mass_times(self, q: Array, x: Array) -> Array:
         """``M(q) x`` (x may be a vector or a matrix of columns)."""
         if self.mass_diagonal is not None:
-            d = jnp.asarray(self.mass_diagonal)
+            d = self._mass_diagonal
             return (d[:, None] if x.ndim == 2 else d) * x
         if self.mass_band is not None:
             return self.mass_band.times(x)
@@ -210,7 +214,7 @@ class Mechanics:
     def solve_mass(self, q: Array, b: Array) -> Array:
         """``M(q)^{-1} b`` (b may be a vector or a matrix of columns)."""
         if self.mass_diagonal is not None:
-            d = jnp.asarray(self.mass_diagonal)
+            d = self._mass_diagonal
             return b / (d[:, None] if b.ndim == 2 else d)
         if self.mass_band is not None:
             return self.mass_band.solve(b)
@@ -309,7 +313,8 @@ class Mechanics:
         to vanish there is lost); rows (or columns) that share no column (row) get one
         colour, and one reverse (forward) derivative per colour gives all of ``G``.
         """
-        pattern = asdex.jacobian_sparsity(lambda q: self.g(q, jnp.asarray(0.0)), jnp.zeros(self.n))
+        pattern = traced_sparsity(asdex.jacobian_sparsity,
+                                  lambda q: self.g(q, jnp.asarray(0.0)), jnp.zeros(self.n))
         with warnings.catch_warnings():
             # A tiny G (one pendulum constraint) needs as many colours as columns: fine.
             warnings.simplefilter("ignore", asdex.DenseColoringWarning)
@@ -333,10 +338,15 @@ class Mechanics:
         with coordinates of size ``L`` (a long chain's far end) ``g`` cannot be computed to
         better than about ``eps L |G|``, which a Newton solve's stall test must know.
         """
-        rows, cols = self.G_pattern()
+        rows, cols = self._G_index
         x = q if x is None else x
-        terms = jnp.abs(self.G_values(q, t)) * jnp.abs(x[jnp.asarray(cols)])
-        return jnp.max(jax.ops.segment_sum(terms, jnp.asarray(rows), num_segments=self.m))
+        terms = jnp.abs(self.G_values(q, t)) * jnp.abs(x[cols])
+        return jnp.max(jax.ops.segment_sum(terms, rows, num_segments=self.m))
+
+    @cached_property
+    def _G_index(self) -> tuple[Array, Array]:
+        # G's pattern on the device once (a copy per call is a constant per call site).
+        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in self.G_pattern())
 
     @cached_property
     def whitened_coloring(self) -> asdex.ColoredPattern:
