@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from linalg.dense import RANK_RTOL, Factor, Schur, unit_diagonal
+from linalg.compiled import device_index
 from linalg.pattern import Pattern, gather
 
 #: Largest core bandwidth the banded Cholesky takes; wider bands go to SuperLU (its cost
@@ -153,11 +154,8 @@ class Banded(Schur):
         self.pattern, self.G_values, self.mass_diagonal = pattern, G_values, mass_diagonal
         self.nnz = pattern.nnz
         self.gathers = pattern.gathers
-        # On the device once (int32): a copy per call is a constant per call site
-        # (linalg.compiled).
         self.core, self.border, self.inverse, self.cols = (
-            jnp.asarray(a, dtype=jnp.int32)
-            for a in (pattern.core, pattern.border, pattern.inverse, pattern.cols))
+            device_index(a) for a in (pattern.core, pattern.border, pattern.inverse, pattern.cols))
         self.dinv = jnp.asarray(1.0 / mass_diagonal)
 
     def factor(self, q, t) -> Factor:

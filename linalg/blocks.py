@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from linalg.compiled import device_index
 from linalg.pattern import gather
 
 #: Largest block treated as a block: bodies and nodes have up to 7 coordinates (a rigid
@@ -85,8 +86,8 @@ class Blocks:
         # made afresh at each call is a constant of its own in every compiled program that
         # calls it (rattle's loop on rigid-chain:N=1024 held 53 copies of the seeds and
         # over 200 of the group indices; at N=16384, 390 MB of constants).
-        self._group_index = [jnp.asarray(g.T.ravel(), dtype=jnp.int32) for g in self.groups]
-        self._inverse = jnp.asarray(self.inverse, dtype=jnp.int32)
+        self._group_index = [device_index(g.T.ravel()) for g in self.groups]
+        self._inverse = device_index(self.inverse)
         self._seeds = jnp.asarray(
             (self.position[None, :] == np.arange(self.size)[:, None]).astype(np.float64))
 

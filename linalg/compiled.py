@@ -52,6 +52,15 @@ def give_back_heap() -> None:
         _TRIM(0)
 
 
+def device_index(a) -> jax.Array:
+    """An index array on the device, as ``int32``, made once: a concrete array even when
+    first asked for inside a trace (it is cached and used by later traces, so a tracer
+    there would leak into them), and one constant for every program that reads it (a copy
+    per call would be a constant per call site)."""
+    with jax.ensure_compile_time_eval():
+        return jnp.asarray(np.asarray(a, dtype=np.int32))
+
+
 class Lifted:
     """A compiled function whose large constants are passed in as arguments.
 
@@ -94,6 +103,12 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
     traced = jitted.trace(*args, **static)
     closed = traced.jaxpr
     consts = list(closed.consts)
+    # A trace has one input per argument leaf. More inputs are values it closed over that
+    # JAX could not take as constants: a tracer leaked from an earlier trace, such as an
+    # index array cached while tracing (hence linalg.compiled.device_index).
+    if len(closed.jaxpr.invars) != len(jax.tree_util.tree_leaves(args)):
+        raise RuntimeError(f"compile_lifted: the trace of {getattr(fn, '__name__', fn)} "
+                           "closes over values that are not constants (a leaked tracer?)")
     values: list[jax.Array] = []
     slots: dict[int, int] = {}
     for i, c in enumerate(consts):

@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from linalg.compiled import give_back_heap
+from linalg.compiled import device_index, give_back_heap
 
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
 #: the dense border of the banded solver.
@@ -208,7 +208,7 @@ class Pattern:
         where[self.border] = np.arange(len(self.border))
         e_border = np.flatnonzero(where[self.rows] >= 0)
         border_index[where[self.rows[e_border]], self.cols[e_border]] = e_border
-        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in (
+        return tuple(device_index(a) for a in (
             pairs[0], pairs[1], core_entries, core_cols, border_index))
 
 

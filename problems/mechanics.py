@@ -50,6 +50,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 from linalg.blocks import Blocks  # noqa: E402
+from linalg.compiled import device_index  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
 from linalg.pattern import traced_sparsity  # noqa: E402
 from linalg.schur import DENSE_KKT_MAX, choose  # noqa: E402
@@ -345,8 +346,7 @@ class Mechanics:
 
     @cached_property
     def _G_index(self) -> tuple[Array, Array]:
-        # G's pattern on the device once (a copy per call is a constant per call site).
-        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in self.G_pattern())
+        return tuple(device_index(a) for a in self.G_pattern())
 
     @cached_property
     def whitened_coloring(self) -> asdex.ColoredPattern:
