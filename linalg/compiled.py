@@ -65,7 +65,7 @@ class Lifted:
     """A compiled function whose large constants are passed in as arguments.
 
     Called with the same (non-static) arguments as the function it was compiled from;
-    :meth:`as_text` and :meth:`memory_analysis` are the executable's.
+    :meth:`as_text` is the executable's.
     """
 
     def __init__(self, compiled, values: list[jax.Array], out_tree):
@@ -77,9 +77,6 @@ class Lifted:
 
     def as_text(self) -> str:
         return self._compiled.as_text()
-
-    def memory_analysis(self):
-        return self._compiled.memory_analysis()
 
     @property
     def lifted_bytes(self) -> int:
