@@ -106,6 +106,38 @@ def one_blas_thread() -> None:
     threadpoolctl.threadpool_limits(1)
 
 
+def one_xla_thread() -> None:
+    """Create JAX's CPU client now, with one intra-op thread, and leave this process free to
+    run on every core it could before.
+
+    XLA sizes the CPU client's thread pool by the cores the process may run on when the
+    client is made. jaxlib's LAPACK kernels (LU, Cholesky, QR) split a large batch across
+    that pool and block their own pool thread until the pieces are done; two such kernels
+    at once on a pool of two threads wait for each other for ever. A vmapped ensemble
+    with dense linear algebra does exactly that: ``rattle`` on ``chain:N=8`` with 512 to
+    4096 lanes hung in about half the tries on 2 cores, never with one thread (8 of 8).
+    The pool's workers are pinned to one core and so have one thread already; this gives
+    the same to a process that is not pinned (the tests, the perf benchmarks): it is
+    pinned to one core while the client is made, then every thread is given back the
+    cores it had. Call it before the first computation; later calls do nothing.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return
+    cpus = os.sched_getaffinity(0)
+    if len(cpus) > 1:
+        os.sched_setaffinity(0, {min(cpus)})
+    try:
+        jax.devices()
+    finally:
+        if len(cpus) > 1:
+            # Affinity is per thread, and the client's threads were made under the pin.
+            for tid in os.listdir("/proc/self/task"):
+                try:
+                    os.sched_setaffinity(int(tid), cpus)
+                except OSError:  # a thread that has ended since
+                    pass
+
+
 def thread_environment() -> dict[str, str]:
     """The environment variables a worker starts with (thread limits added to ours,
     :data:`GPU_ENV`, and :data:`integrators.loop.KERNEL_FLAG`, under which XLA compiles

@@ -154,30 +154,62 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     under their one policy for redundant constraints (:mod:`linalg.dense`).
 
     ``q`` and ``v`` may hold a batch of states on a leading axis (an ensemble's lanes,
-    :mod:`problems.ensemble`): each is projected, in one compiled call per iteration, and
-    each stops iterating once its own ``|g|`` is at most ``tol``, so that a state's
-    projection does not depend on the others in its batch.
+    :mod:`problems.ensemble`). The batch is projected in slices of :data:`PROJECT_WIDTH`
+    states (the last one padded with copies of its last state), each in one compiled call
+    per iteration, and each state stops iterating once its own ``|g|`` is at most ``tol``:
+    a state's projection depends neither on the others nor on the batch's size. The
+    slices bound the batch of every LAPACK call: jaxlib splits a large batch across
+    XLA's intra-op threads and waits for the pieces on those same threads, and two such
+    calls at once deadlocked on 2 cores (a batch of 4095 states of ``chain:N=8`` hung in
+    half the tries; 512 never did).
     """
+    if np.ndim(q) == 2:
+        width = PROJECT_WIDTH
+        q, v = np.asarray(q, np.float64), np.asarray(v, np.float64)
+        k = len(q)
+        pad = -k % width
+        q = np.concatenate([q, np.repeat(q[-1:], pad, axis=0)])
+        v = np.concatenate([v, np.repeat(v[-1:], pad, axis=0)])
+        one = _projector(mech, (width, q.shape[1]), tol, max_iter)
+        parts = [one(q[i:i + width], v[i:i + width], t) for i in range(0, len(q), width)]
+        return (np.concatenate([a for a, _ in parts])[:k],
+                np.concatenate([b for _, b in parts])[:k])
+    return _projector(mech, np.shape(q), tol, max_iter)(q, v, t)
+
+
+#: States projected together by :func:`project` (the width of every compiled batch).
+PROJECT_WIDTH = 256
+
+
+def _projector(mech: Mechanics, shape: tuple[int, ...], tol: float, max_iter: int):
+    """``(q, v, t) -> (q, v)`` projected (:func:`project`), for states of ``shape`` (one
+    state, or a batch on the leading axis), compiled once for all calls."""
     schur = mech.schur("auto")
     step, g = _projection_step(mech, schur), mech.g
-    if np.ndim(q) == 2:
+    residual = mech.vel_residual
+    if len(shape) == 2:
         step, g = jax.vmap(step, in_axes=(0, None, 0)), jax.vmap(g, in_axes=(0, None))
-    g = jax.jit(g)
-    t = jnp.asarray(t, dtype=jnp.float64)
-    q = jnp.asarray(q, dtype=jnp.float64)
+        residual = jax.vmap(residual, in_axes=(0, 0, None))
+    g, residual = jax.jit(g), jax.jit(residual)
+    like = jnp.zeros(shape, jnp.float64)
+    zero = jnp.asarray(0.0, jnp.float64)
     # The solver's index arrays as arguments, not constants (linalg.compiled).
-    step = compile_lifted(step, q, t, g(q, t))
-    for _ in range(max_iter):
-        r = g(q, t)
-        active = jnp.max(jnp.abs(r), axis=-1, initial=0.0, keepdims=True) > tol
-        if not bool(jnp.any(active)):
-            break
-        q = jnp.where(active, q - step(q, t, r), q)
-    v = jnp.asarray(v, dtype=jnp.float64)
-    residual = mech.vel_residual if np.ndim(v) == 1 else jax.vmap(mech.vel_residual,
-                                                                  in_axes=(0, 0, None))
-    v = v - step(q, t, jax.jit(residual)(q, v, t))
-    return np.asarray(q), np.asarray(v)
+    step = compile_lifted(step, like, zero, g(like, zero))
+
+    def run(q, v, t):
+        t = jnp.asarray(t, dtype=jnp.float64)
+        q = jnp.asarray(q, dtype=jnp.float64)
+        for _ in range(max_iter):
+            r = g(q, t)
+            active = jnp.max(jnp.abs(r), axis=-1, initial=0.0, keepdims=True) > tol
+            if not bool(jnp.any(active)):
+                break
+            q = jnp.where(active, q - step(q, t, r), q)
+        v = jnp.asarray(v, dtype=jnp.float64)
+        v = v - step(q, t, residual(q, v, t))
+        return np.asarray(q), np.asarray(v)
+
+    return run
 
 
 def _projection_step(mech: Mechanics, schur):

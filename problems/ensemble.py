@@ -12,8 +12,8 @@ the case's initial values as they are (the run the suite makes without an ensemb
     v_i = P_{G}\\big(v_0 + \\sigma_v\\, D\\, \\xi_v\\big),
 
 where ``P_g`` is the mass-orthogonal projection onto ``g(q, t_0) = 0`` (Gauss-Newton),
-``P_G`` the one onto ``G(q_i) v + g_t = 0`` (:func:`problems.case.project`, the batch in
-one compiled call per iteration), and ``D`` the 0/1 diagonal of the coordinates that are
+``P_G`` the one onto ``G(q_i) v + g_t = 0`` (:func:`problems.case.project`, in batches of
+one width), and ``D`` the 0/1 diagonal of the coordinates that are
 perturbed. The sizes come from the case's :class:`~problems.case.Perturbation`:
 ``sigma_q = position * rms(q_0)`` (``position`` itself where ``q_0 = 0``) and
 ``sigma_v = sqrt(2 * velocity * energy_scale / tr M(q_0))``, so that the perturbation's
@@ -70,11 +70,7 @@ def draw(case: Case, lanes: int, seed: int = 0, first: int = 0
     q = case.q0 + sigma_q * mask * noise[:, :n]
     v = case.v0 + sigma_v * mask * noise[:, n:]
     if len(drawn):
-        # XLA compiles a batch of one state otherwise than a larger batch (v differed at
-        # 1e-17), so a lone lane is projected beside a copy of itself, as in any batch.
-        twice = np.repeat if len(drawn) == 1 else lambda a, k, axis: a
-        q, v = project(case.mech, twice(q, 2, axis=0), twice(v, 2, axis=0), case.t0)
-        q, v = q[:len(drawn)], v[:len(drawn)]
+        q, v = project(case.mech, q, v, case.t0)
         error = np.maximum(*_residuals(case.mech, q, v, case.t0))
         bad = ~(error <= CONSISTENT_TOL)  # NaN is bad too
         if bad.any():

@@ -1,5 +1,6 @@
 """What every test shares: float64 JAX, set once before any test module builds an array;
-the persistent compilation cache; one BLAS thread (:func:`benchmarks.pool.one_blas_thread`);
+the persistent compilation cache; one BLAS thread (:func:`benchmarks.pool.one_blas_thread`) and one XLA intra-op
+thread (:func:`benchmarks.pool.one_xla_thread`);
 and the ``slow`` marker's meaning.
 
 ``make test`` runs everything. ``pytest -m "not slow"`` is the quick subset: it leaves out
@@ -22,3 +23,5 @@ compilation.enable()
 # One BLAS thread per test process, as in the suite's workers: two test workers on two
 # cores would otherwise each spin a second OpenBLAS thread in every dense solve.
 pool.one_blas_thread()
+# And one XLA intra-op thread: with two, a large vmapped ensemble's LAPACK calls can deadlock.
+pool.one_xla_thread()

@@ -36,6 +36,7 @@ def main(argv=None) -> int:
     # XLA reads its flags when JAX starts its CPU client: before anything computes.
     os.environ.update(pool.thread_environment())
     pool.one_blas_thread()
+    pool.one_xla_thread()
     import jax
 
     import integrators

@@ -14,7 +14,9 @@ Rates
     C yardstick (``yardstick/rattle_sps.c``, the same RATTLE step on sps-receiver, see
     :mod:`benchmarks.perf.throughput`) gives plain C's steps per second beside them. This
     process is set up as the suite's workers are (one intra-op thread, the one-kernel XLA
-    flag, :func:`benchmarks.perf.processes.like_a_worker`): one core.
+    flag, :func:`benchmarks.perf.processes.like_a_worker`): one core. The one trajectory
+    runs on the CPU, as the suite's single runs do; the ensembles on ``--device`` (``auto``:
+    a GPU where JAX sees one, else the CPU; the platform is printed with each figure).
 
     The bars (issue figures): at 1024 lanes on the pendulum, ``rattle``'s lane-steps per
     second at least :data:`BARS` ``["rattle"]`` times its one-trajectory steps per second,
@@ -33,6 +35,7 @@ Usage::
 
     python -m benchmarks.perf.ensemble
     python -m benchmarks.perf.ensemble --lanes 1 256 1024 --skip-memory
+    python -m benchmarks.perf.ensemble --device gpu --receiver
 """
 
 from __future__ import annotations
@@ -45,11 +48,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax
+import numpy as np
+
 import integrators
 import problems
 from benchmarks.perf.processes import (compile_yardstick, like_a_worker, run_process)
 from benchmarks.perf.throughput import run_c
-from benchmarks.plan import ENSEMBLE_GRID
+from benchmarks.plan import DEVICES, ENSEMBLE_GRID, jax_device
 from benchmarks.records import CommandParser
 from integrators.base import Grid
 from problems.ensemble import draw
@@ -60,6 +66,9 @@ BARS = {"rattle": 3.0, "lobatto3ab3": 2.0}
 BAR_LANES = 1024
 #: Peak resident set of the 16384-lane chain run (bytes).
 MEMORY_BAR = 2 << 30
+#: Bound on max |g| over the receiver ensemble's lanes, and on a lane's final state against
+#: its single run.
+RECEIVER_BAR = 1e-12
 
 
 def timed(solve, repeats: int) -> tuple[float, object]:
@@ -73,14 +82,16 @@ def timed(solve, repeats: int) -> tuple[float, object]:
 
 
 def rates(method: str, problem: str, steps: int, h: float, lanes: list[int], repeats: int,
-          budget: float) -> dict:
-    """One trajectory's steps per second and each ensemble's lane-steps per second; an
-    ensemble expected to take longer than ``budget`` seconds per solve is skipped."""
+          budget: float, device: jax.Device) -> dict:
+    """One trajectory's steps per second (on the CPU) and each ensemble's lane-steps per
+    second (on ``device``); an ensemble expected to take longer than ``budget`` seconds per
+    solve is skipped."""
     case = problems.make(problem).with_t_end(steps * h)
     grid = Grid(case.t0, case.t_end, **ENSEMBLE_GRID)
     integ = integrators.make(method, h=h)
     q0s, v0s = draw(case, max(lanes), seed=0)
-    seconds, traj = timed(integ.prepare(case, grid), repeats)
+    with jax.default_device(jax_device("cpu")):
+        seconds, traj = timed(integ.prepare(case, grid), repeats)
     single = steps / seconds
     out = {"single": single, "lanes": {}}
     print(f"{method} on {problem}: one trajectory {single:.3g} steps/s "
@@ -91,14 +102,15 @@ def rates(method: str, problem: str, steps: int, h: float, lanes: list[int], rep
             print(f"  {k:6d} lanes: skipped (about {expected:.0f} s per solve, over the "
                   f"budget of {budget:g} s)", flush=True)
             continue
-        start = time.perf_counter()
-        solve = integ.prepare_ensemble(case, grid, q0s[:k], v0s[:k])
-        setup = time.perf_counter() - start
-        seconds, trajs = timed(solve, repeats)
+        with jax.default_device(device):
+            start = time.perf_counter()
+            solve = integ.prepare_ensemble(case, grid, q0s[:k], v0s[:k])
+            setup = time.perf_counter() - start
+            seconds, trajs = timed(solve, repeats)
         rate = k * steps / seconds
         out["lanes"][k] = rate
         bad = sum(t.status != "ok" for t in trajs)
-        print(f"  {k:6d} lanes: {rate:.3g} lane-steps/s = {rate / single:.2f} x one "
+        print(f"  {k:6d} lanes on {device.platform}: {rate:.3g} lane-steps/s = {rate / single:.2f} x one "
               f"trajectory; solve {seconds:.3g} s, set-up {setup:.3g} s; {bad} lanes failed",
               flush=True)
     return out
@@ -108,28 +120,32 @@ CHILD = """
 import json, sys, time
 from benchmarks.perf.processes import like_a_worker, peak_rss
 like_a_worker()
-import integrators, problems
-from benchmarks.plan import ENSEMBLE_GRID
+import jax, integrators, problems
+from benchmarks.plan import ENSEMBLE_GRID, jax_device
 from integrators.base import Grid
 from problems.ensemble import draw
 lanes, steps, h = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+device = jax_device(sys.argv[4])
 case = problems.make("chain:N=8").with_t_end(steps * h)
 q0s, v0s = draw(case, lanes, seed=0)
-solve = integrators.make("rattle", h=h).prepare_ensemble(
-    case, Grid(case.t0, case.t_end, **ENSEMBLE_GRID), q0s, v0s)
-start = time.perf_counter()
-trajs = solve()
+with jax.default_device(device):
+    solve = integrators.make("rattle", h=h).prepare_ensemble(
+        case, Grid(case.t0, case.t_end, **ENSEMBLE_GRID), q0s, v0s)
+    start = time.perf_counter()
+    trajs = solve()
+stats = device.memory_stats() or {}
 print(json.dumps({"ok": sum(t.status == "ok" for t in trajs), "solve_s":
-                  time.perf_counter() - start, "peak_rss": peak_rss()}))
+                  time.perf_counter() - start, "peak_rss": peak_rss(),
+                  "platform": device.platform, "device_peak": stats.get("peak_bytes_in_use")}))
 """
 
 
-def memory(lanes: int, counts: list[int], h: float) -> bool:
+def memory(lanes: int, counts: list[int], h: float, device: str) -> bool:
     """Peak memory of the chain ensemble at each step count, in fresh processes."""
     print(f"\npeak memory of rattle on chain:N=8, {lanes} lanes, h = {h:g}, fresh processes:")
     peaks = []
     for steps in counts:
-        command = [sys.executable, "-c", CHILD, str(lanes), str(steps), repr(h)]
+        command = [sys.executable, "-c", CHILD, str(lanes), str(steps), repr(h), device]
         ending, stdout, stderr, polled = run_process(command, math.inf, None)
         if ending:
             print(f"  {steps:.0e} steps: ended with {ending}: {stderr.strip()[-500:]}")
@@ -137,11 +153,39 @@ def memory(lanes: int, counts: list[int], h: float) -> bool:
         info = json.loads(stdout.strip().splitlines()[-1])
         peak = info["peak_rss"] or polled
         peaks.append(peak)
-        print(f"  {steps:.0e} steps: peak RSS {peak / 2**20:.0f} MiB; {info['ok']} of {lanes} "
-              f"lanes ok; solve {info['solve_s']:.1f} s "
+        on = info["platform"]
+        if info["device_peak"] is not None:
+            on += f", device peak {info['device_peak'] / 2**20:.0f} MiB"
+        print(f"  {steps:.0e} steps ({on}): peak RSS {peak / 2**20:.0f} MiB; {info['ok']} of "
+              f"{lanes} lanes ok; solve {info['solve_s']:.1f} s "
               f"({lanes * steps / info['solve_s']:.3g} lane-steps/s)", flush=True)
     verdict = "holds" if max(peaks) < MEMORY_BAR else "NOT met"
     print(f"  under {MEMORY_BAR / 2**30:g} GiB at every step count: {verdict}")
+    return True
+
+
+def receiver(device: jax.Device) -> bool:
+    """The receiver ensemble on ``device`` against single runs on the CPU (module notes)."""
+    case = problems.make("sps-receiver").with_t_end(50.0)
+    grid = Grid(case.t0, case.t_end, **ENSEMBLE_GRID)
+    q0s, v0s = draw(case, 256, seed=0)
+    integ = integrators.make("rattle", h=0.05)
+    with jax.default_device(device):
+        lanes = integ.prepare_ensemble(case, grid, q0s, v0s)()
+    ok = sum(lane.status == "ok" for lane in lanes)
+    worst = max(float(np.max(lane.windows["pos"])) for lane in lanes)
+    print(f"\nrattle on sps-receiver, 256 lanes on {device.platform}, h = 0.05 to t = 50: "
+          f"{ok} lanes ok, max |g| {worst:.3g} (bar {RECEIVER_BAR:g})")
+    apart = 0.0
+    with jax.default_device(jax_device("cpu")):
+        for i in np.random.default_rng(7).choice(256, 5, replace=False):
+            single = integ.prepare(case.with_initial(q0s[i], v0s[i]), grid)()
+            gap = max(float(np.max(np.abs(lanes[i].q_final - single.q_final))),
+                      float(np.max(np.abs(lanes[i].v_final - single.v_final))))
+            apart = max(apart, gap)
+            print(f"  lane {i:3d} against its single run on the CPU: final q, v within {gap:.3g}")
+    holds = ok == 256 and worst <= RECEIVER_BAR and apart <= RECEIVER_BAR
+    print(f"  {'holds' if holds else 'NOT met'}")
     return True
 
 
@@ -152,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--h", type=float, default=1e-2, help="step size")
     parser.add_argument("--lanes", type=int, nargs="+",
                         default=[1, 16, 256, 1024, 4096, 16384])
-    parser.add_argument("--methods", nargs="+", default=list(BARS))
+    parser.add_argument("--methods", nargs="*", default=list(BARS),
+                        help="methods whose rates are measured (none: only the other parts)")
     parser.add_argument("--problems", nargs="+", default=["pendulum", "sps-receiver"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--budget", type=float, default=30.0,
@@ -160,12 +205,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--memory-lanes", type=int, default=16384)
     parser.add_argument("--memory-steps", type=float, nargs="+", default=[1e3, 1e4, 1e5])
     parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument("--receiver", action="store_true",
+                        help="check the 256-lane sps-receiver ensemble (module notes)")
+    parser.add_argument("--device", choices=DEVICES, default="auto",
+                        help="where the ensembles run (auto: a GPU where JAX sees one)")
     args = parser.parse_args(argv)
     load = like_a_worker()
-    print(f"load average (1 min) at start: {load:.2f}")
+    device = jax_device(args.device)
+    if device is None:
+        parser.error("--device gpu, but JAX sees no GPU on this machine")
+    print(f"load average (1 min) at start: {load:.2f}; ensembles on {device.platform} "
+          f"({device.device_kind}), one trajectory on the CPU")
     steps = int(args.steps)
     results = {(m, p): rates(m, p, steps, args.h, sorted(args.lanes), args.repeats,
-                             args.budget)
+                             args.budget, device)
                for p in args.problems for m in args.methods}
     with tempfile.TemporaryDirectory() as tmp:
         exe, note, _ = compile_yardstick("rattle_sps", Path(tmp))
@@ -184,9 +237,10 @@ def main(argv: list[str] | None = None) -> int:
         ratio = got / results[method, "pendulum"]["single"]
         print(f"  {method} at {BAR_LANES} lanes: {ratio:.2f} x (bar {bar:g} x): "
               f"{'holds' if ratio >= bar else 'NOT met'}")
-    ok = True
+    ok = receiver(device) if args.receiver else True
     if not args.skip_memory:
-        ok = memory(args.memory_lanes, [int(n) for n in args.memory_steps], args.h)
+        ok = memory(args.memory_lanes, [int(n) for n in args.memory_steps], args.h,
+                    device.platform) and ok
     print(f"load average (1 min) at end: {like_a_worker():.2f}")
     return 0 if ok else 1
 

@@ -33,12 +33,14 @@ POLL = 0.05
 def like_a_worker() -> float:
     """Set up this process as the suite's workers are, before it first computes: the
     persistent compilation cache, one intra-op thread and the one-kernel XLA flag
-    (:func:`benchmarks.pool.thread_environment`). Returns the 1-minute load average."""
+    (:func:`benchmarks.pool.thread_environment`, :func:`benchmarks.pool.one_xla_thread`).
+    Returns the 1-minute load average."""
     from benchmarks import compilation, pool
 
     compilation.enable()
     os.environ.update(pool.thread_environment())
     pool.one_blas_thread()
+    pool.one_xla_thread()
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
