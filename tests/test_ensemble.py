@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import jax
 import numpy as np
 import pandas as pd
 import pytest
@@ -268,3 +269,33 @@ def test_device_gpu_without_one_is_one_line(tmp_path, capsys):
 def test_bad_device_or_chunk_in_a_suite_names_the_line(tmp_path, capsys, text, what):
     code, err = _suite_errors(tmp_path, capsys, f"ensemble = 4\n{text}")
     assert code == 2 and len(err) == 1 and "s.toml:6" in err[0] and what in err[0]
+
+
+def test_states_drawn_across_projection_slices_do_not_depend_on_the_ensemble_size():
+    """More lanes than one projection slice (problems.case.PROJECT_WIDTH): a lane is the
+    same in an ensemble of 300 as in one of 600, and on the constraints."""
+    case = problems.make("chain:N=8")
+    q, v = draw(case, 300, seed=3)
+    more, more_v = draw(case, 600, seed=3)
+    np.testing.assert_array_equal(q, more[:300])
+    np.testing.assert_array_equal(v, more_v[:300])
+    pos, vel = problems.case.residuals(case.mech, more[450], more_v[450], case.t0)
+    assert max(pos, vel) <= 1e-12
+
+
+def test_this_process_has_one_xla_thread_and_all_its_cores():
+    """conftest calls benchmarks.pool.one_xla_thread: XLA's CPU pool has one thread (so
+    jaxlib's batched LAPACK kernels cannot deadlock it), and no thread stays pinned."""
+    import os
+    from pathlib import Path
+
+    jax.devices()
+    names = [Path(f"/proc/self/task/{tid}/comm").read_text().strip()
+             for tid in os.listdir("/proc/self/task")]
+    assert names.count("tf_XLAEigen") == 1
+    cores = os.sched_getaffinity(0)
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            assert os.sched_getaffinity(int(tid)) == cores
+        except ProcessLookupError:  # a thread that ended meanwhile
+            pass
