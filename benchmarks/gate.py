@@ -147,12 +147,19 @@ def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:
 def compare(baseline: dict, current: dict) -> list[Finding]:
     """Every regression, improvement and note between two ``{run id: entry}`` maps.
 
-    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``.
+    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``; a baseline
+    entry may list in ``roundoff`` the metrics and drift classes that round-off decides
+    (:func:`benchmarks.check.probe`), which are compared but never gating.
     """
     findings: list[Finding] = []
     for rid, cur in current.items():
-        gating = not cur.get("sensitive", False)
+        sensitive = cur.get("sensitive", False)
         base = baseline.get(rid)
+        loose = set((base or {}).get("roundoff", ()))
+
+        def gating(metric: str) -> bool:
+            return not sensitive and metric not in loose
+
         if base is None:
             findings.append(Finding("note", rid, "run", "-", cur["status"],
                                     "not in the baseline", False))
@@ -161,20 +168,23 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
         if bs in FINISHED and cs not in FINISHED:
             findings.append(Finding("regression", rid, "status", bs, cs,
                                     "newly fails: " + one_line(cur.get("message") or "")[:200],
-                                    gating))
+                                    gating("status")))
             continue
         if bs not in FINISHED and cs in FINISHED:
-            findings.append(Finding("improvement", rid, "status", bs, cs, "now finishes", gating))
+            findings.append(Finding("improvement", rid, "status", bs, cs, "now finishes",
+                                    gating("status")))
             continue
         if bs not in FINISHED:
             if cs != bs:
                 findings.append(Finding("regression", rid, "status", bs, cs,
-                                        one_line(cur.get("message") or "")[:200], gating))
+                                        one_line(cur.get("message") or "")[:200],
+                                        gating("status")))
             elif (base.get("fail_step") is not None and cur.get("fail_step") is not None
                   and cur["fail_step"] != base["fail_step"]):
                 kind = "regression" if cur["fail_step"] < base["fail_step"] else "improvement"
                 findings.append(Finding(kind, rid, "fail_step", str(base["fail_step"]),
-                                        str(cur["fail_step"]), "fails at another step", gating))
+                                        str(cur["fail_step"]), "fails at another step",
+                                        gating("fail_step")))
             continue
         names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
         for metric in names:
@@ -183,12 +193,13 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
                 continue
             kind, change = compare_metric(metric, b, c)
             if kind is not None:
-                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change, gating))
+                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change,
+                                        gating(metric)))
         for series in GROWTH:
             b, c = base.get("growth", {}).get(series), cur.get("growth", {}).get(series)
             kind, change = compare_growth(b, c)
             if kind is not None:
-                findings.append(Finding(kind, rid, series, b, c, change, gating))
+                findings.append(Finding(kind, rid, series, b, c, change, gating(series)))
     for rid in baseline:
         if rid not in current:
             findings.append(Finding("regression", rid, "run", baseline[rid]["status"], "-",

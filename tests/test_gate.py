@@ -66,6 +66,53 @@ def test_drift_classes_that_grow_faster_regress():
     assert "pos_growth" not in {f.metric for f in compare(base, cur)}
 
 
+def test_metrics_that_round_off_decides_are_compared_but_not_gating():
+    base = {"a": {**entry(max_pos_residual=1e-11, max_vel_residual=1e-12),
+                  "growth": {"pos_growth": "bounded"},
+                  "roundoff": ["max_pos_residual", "pos_growth"]}}
+    cur = {"a": {**entry(max_pos_residual=3e-8, max_vel_residual=1e-8),
+                 "growth": {"pos_growth": "exponential"}}}
+    found = {f.metric: f for f in compare(base, cur)}
+    assert found["max_pos_residual"].kind == "regression"
+    assert not found["max_pos_residual"].gating and not found["pos_growth"].gating
+    assert found["max_vel_residual"].gating  # not in the list: gated as before
+    cur["a"]["status"] = "failed"  # a run's status is always gated
+    assert {f.metric: f for f in compare(base, cur)}["status"].gating
+
+
+PROBED = """
+description = "round-off probe test: an adaptive run that round-off decides, and one it does not"
+[[group]]
+problems = ["flyball-governor"]
+integrators = ["ida-ggl"]
+rtol = [1e-8]
+atol = [1e-8]
+t_end = 2.0
+
+[[group]]
+problems = ["pendulum"]
+integrators = ["baumgarte-dopri5"]
+rtol = [1e-8]
+atol = [1e-10]
+t_end = 5.0
+"""
+
+
+@pytest.mark.slow
+def test_update_probes_adaptive_runs_and_lists_what_round_off_decides(tmp_path):
+    """ida-ggl on the flyball governor: initial positions scaled by 1 -/+ 1e-15 move max |g|
+    from 9.7e-12 past the gate's factor (module notes of benchmarks.check)."""
+    suite, baseline = tmp_path / "probe.toml", tmp_path / "baseline.json"
+    suite.write_text(PROBED)
+    args = ["--suite", str(suite), "--baseline", str(baseline), "--jobs", "1"]
+    assert check.main([*args, "--update"]) == 0
+    runs = json.loads(baseline.read_text())["runs"]
+    flyball = runs["flyball-governor / ida-ggl / rtol=1e-08 atol=1e-08 / t_end=2"]
+    assert "max_pos_residual" in flyball["roundoff"]
+    assert "roundoff" not in runs["pendulum / baumgarte-dopri5 / rtol=1e-08 atol=1e-10 / t_end=5"]
+    assert check.main(args) == 0
+
+
 SUITE = """
 description = "drift gate test: two deterministic short runs"
 [[group]]
@@ -134,6 +181,7 @@ def baseline_file(path, suite="gate", runs=None):
     ("gate", {"a": entry(max_pos_residual=float("nan"))}, "max_pos_residual = nan"),
     ("gate", {"a": entry(final_state_error=float("inf"))}, "final_state_error = inf"),
     ("gate", {"a": entry(scd="12")}, "scd = '12'"),
+    ("gate", {"a": {**entry(), "roundoff": "max_pos_residual"}}, "roundoff must be a list"),
 ])
 def test_baselines_that_cannot_gate_are_refused_before_anything_runs(suite, runs, words,
                                                                       tmp_path, capsys):
