@@ -67,6 +67,15 @@ from problems.mechanics import Mechanics
 #: practical limit on it.
 KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
 
+#: XLA:CPU option: emit fusions with XLA's LLVM IR emitters instead of its newer MLIR
+#: fusion emitters. Compiling is most of a suite's set-up, and this takes about a third
+#: less CPU time to compile (andrews / radau5 18.1 and 18.8 s against 10.5 and 12.6 s;
+#: car-axis / genalpha 4.4 against 2.1 to 2.8 s; flyball-governor / hht 5.8 and 6.6
+#: against 3.2 to 4.4 s: ``benchmarks/perf/compile_profile.py``, CPU time, load about 5),
+#: with the same kernels' speed (rattle on sps-receiver against C: 0.85 against 0.74 of
+#: C per CPU second in one noisy pair of runs, the same Newton iterations and residuals).
+COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
 #: Compiled loops kept for reuse (each holds its executable; a sweep needs one).
 CACHE_SIZE = 8
 _LOOPS: OrderedDict = OrderedDict()
@@ -77,15 +86,18 @@ WORK = tuple(key for key in COUNTERS if key != "n_steps")
 Step = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, dict]]
 
 
-def kernel_environment(environ: dict[str, str] | None = None) -> dict[str, str]:
-    """``XLA_FLAGS`` of ``environ`` (default: this process's) with :data:`KERNEL_FLAG` added.
+def kernel_environment(environ: dict[str, str] | None = None,
+                       options: tuple[str, ...] = (KERNEL_FLAG, COMPILE_FLAG)) -> dict[str, str]:
+    """``XLA_FLAGS`` of ``environ`` (default: this process's) with ``options`` added
+    (default :data:`KERNEL_FLAG` and :data:`COMPILE_FLAG`).
 
     Returns a one-entry dict to merge into the environment of a process that is yet to
     start, or into ``os.environ`` before this process first uses JAX.
     """
     flags = (os.environ if environ is None else environ).get("XLA_FLAGS", "")
-    if KERNEL_FLAG not in flags.split():
-        flags = f"{flags} {KERNEL_FLAG}".strip()
+    for option in options:
+        if option not in flags.split():
+            flags = f"{flags} {option}".strip()
     return {"XLA_FLAGS": flags}
 
 

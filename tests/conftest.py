@@ -1,6 +1,8 @@
 """What every test shares: float64 JAX, set once before any test module builds an array;
-the persistent compilation cache; one BLAS thread (:func:`benchmarks.pool.one_blas_thread`) and one XLA intra-op
-thread (:func:`benchmarks.pool.one_xla_thread`);
+the persistent compilation cache; XLA's compile option
+(:data:`integrators.loop.COMPILE_FLAG`); one BLAS thread
+(:func:`benchmarks.pool.one_blas_thread`) and one XLA intra-op thread
+(:func:`benchmarks.pool.one_xla_thread`);
 and the ``slow`` marker's meaning.
 
 ``make test`` runs everything. ``pytest -m "not slow"`` is the quick subset: it leaves out
@@ -13,12 +15,19 @@ so a second ``make test`` and the test files after the first reuse what was comp
 test depends on its state: an entry read back is the executable that would be compiled.
 """
 
+import os
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 from benchmarks import compilation, pool  # noqa: E402  (after float64 is set)
+from integrators.loop import COMPILE_FLAG, kernel_environment  # noqa: E402
 
+# XLA reads its flags when JAX starts its CPU client, at the first computation: the tests
+# compile as the suite's workers do (without the one-kernel flag, which only changes how
+# the time loops run), which takes a third less time to compile.
+os.environ.update(kernel_environment(options=(COMPILE_FLAG,)))
 compilation.enable()
 # One BLAS thread per test process, as in the suite's workers: two test workers on two
 # cores would otherwise each spin a second OpenBLAS thread in every dense solve.
