@@ -238,6 +238,17 @@ def accuracy(row, column: str) -> float:
     return value
 
 
+def accuracies(runs: pd.DataFrame, column: str) -> np.ndarray:
+    """:func:`accuracy` of every row of ``runs``, computed column-wise."""
+    value = pd.to_numeric(runs[column], errors="coerce").to_numpy(dtype=float)
+    if column == "final_state_error":
+        floor = pd.to_numeric(runs["reference_floor"], errors="coerce").fillna(0.0) \
+            if "reference_floor" in runs else pd.Series(0.0, index=runs.index)
+        value = np.where(np.isnan(value), value,
+                         np.maximum(value, np.maximum(floor.to_numpy(dtype=float), ORDER_FLOOR)))
+    return value
+
+
 def floor_text(row) -> str:
     """How a final error at the floor is shown."""
     return f"at reference floor (≤ {fmt(reference_floor(row))})"
@@ -358,8 +369,7 @@ def accuracy_metric(runs: pd.DataFrame) -> str | None:
 def reaching(runs: pd.DataFrame, column: str, target: float) -> pd.DataFrame:
     """The finished runs whose :func:`accuracy` in ``column`` is at or below ``target``."""
     ok = runs[runs["status"] == Status.OK]
-    values = np.array([accuracy(r, column) for _, r in ok.iterrows()], dtype=float)
-    return ok[values <= target] if len(ok) else ok
+    return ok[accuracies(ok, column) <= target] if len(ok) else ok
 
 
 def per_integrator(runs: pd.DataFrame, cost: str) -> pd.DataFrame:
@@ -403,8 +413,7 @@ def matched(runs: pd.DataFrame) -> Matched | str:
     ok = runs[(runs["status"] == Status.OK) & runs[metric].notna()]
     if ok.empty:
         return "no finished run with a measured accuracy"
-    best = ok.assign(_acc=[accuracy(r, metric) for _, r in ok.iterrows()]) \
-        .groupby("integrator")["_acc"].min()
+    best = ok.assign(_acc=accuracies(ok, metric)).groupby("integrator")["_acc"].min()
     return Matched(metric, float(np.median(best.values)), ok, best)
 
 
@@ -476,7 +485,7 @@ def standings(runs: pd.DataFrame) -> list[Standing]:
     m = matched(runs)
     cost = {}
     if not isinstance(m, str):
-        acc = m.ok.assign(_acc=[accuracy(r, m.metric) for _, r in m.ok.iterrows()])
+        acc = m.ok.assign(_acc=accuracies(m.ok, m.metric))
         for key, grp in acc.groupby("integrator"):
             hits = grp[grp["_acc"] <= m.target]
             reached = not hits.empty and hits["wall_s"].notna().any()
@@ -525,11 +534,8 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
         if column == "final_state_error" and is_sensitive(runs):
             continue
         floor = max(largest_floor(ok), ORDER_FLOOR) if column == "final_state_error" else 0.0
-        best = {}
-        for _, r in ok.iterrows():
-            value = accuracy(r, column)
-            if not math.isnan(value):
-                best[r["integrator"]] = min(best.get(r["integrator"], math.inf), value)
+        best = ok.assign(_acc=accuracies(ok, column)).groupby("integrator")["_acc"].min() \
+            .dropna().to_dict()
         for level in sorted(levels, reverse=True):
             if level < floor:
                 what = "reference floor" if floor > ORDER_FLOOR else "round-off plateau"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import html
 import re
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,9 +71,14 @@ class Table:
 @dataclass
 class Figure:
     name: str  # unique in the report; any text (the file is named by file_stem(name))
-    svg: str
+    svg: str | Future  # the SVG text, or its future (reports.figures.Drawing)
     caption: str = ""
     trusted: bool = True  # drawn by the report itself; False keeps its styles out of the page
+
+
+def svg_text(figure: Figure) -> str:
+    """The figure's SVG text, waiting for it where it is still being drawn."""
+    return figure.svg.result() if isinstance(figure.svg, Future) else figure.svg
 
 
 @dataclass
@@ -135,7 +141,7 @@ def to_markdown(doc: Document, out_dir: Path,
         elif isinstance(b, Figure):
             stem = file_stem(b.name)
             path = out_dir / figure_dir / f"{stem}.svg"
-            replace_file(path, clean(b.svg, "", keep_style=b.trusted))
+            replace_file(path, clean(svg_text(b), "", keep_style=b.trusted))
             written.append(path)
             lines += [f"![{_md_cell(b.name)}]({figure_dir}/{stem}.svg)", ""]
             if b.caption:
@@ -234,7 +240,7 @@ def to_html(doc: Document, footer: list[str] | None = None) -> str:
             body.append("".join(parts))
         elif isinstance(b, Figure):
             n_fig += 1
-            svg = clean(b.svg, f"f{n_fig}-", keep_style=b.trusted)
+            svg = clean(svg_text(b), f"f{n_fig}-", keep_style=b.trusted)
             cap = f"<figcaption>{esc(b.caption)}</figcaption>" if b.caption else ""
             body.append(f'<figure id="fig-{file_stem(b.name)}">{svg}{cap}</figure>')
     if open_sub:

@@ -18,9 +18,10 @@ from reports.analysis import fmt, setting
 from reports.document import Document, Figure, Para, Table
 
 
-def section(doc: Document, runs: pd.DataFrame, series, colors: dict) -> None:
+def section(doc: Document, runs: pd.DataFrame, series, colors: dict, draw) -> None:
     """Add the section for the ensemble runs among ``runs`` (the latest of each identity);
-    nothing when there are none."""
+    nothing when there are none. Figures are drawn by ``draw``
+    (:class:`reports.figures.Drawing`)."""
     if runs.empty:
         return
     doc.heading(2, "Ensembles")
@@ -32,7 +33,7 @@ def section(doc: Document, runs: pd.DataFrame, series, colors: dict) -> None:
         "wall time is the whole ensemble's solve, and work the sum over its lanes. Final "
         "errors exist for lane 0 alone (no reference is known for the perturbed states)."))
     for problem in sorted(runs["problem"].unique()):
-        _problem(doc, problem, runs[runs["problem"] == problem], series, colors)
+        _problem(doc, problem, runs[runs["problem"] == problem], series, colors, draw)
 
 
 def _verdicts(runs: pd.DataFrame) -> str:
@@ -50,7 +51,7 @@ def _verdicts(runs: pd.DataFrame) -> str:
     return "Verdicts: " + ("; ".join(parts) if parts else "no ensemble finished a lane") + "."
 
 
-def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) -> None:
+def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, draw) -> None:
     doc.heading(3, f"Ensembles: {problem}")
     runs = runs.sort_values(["integrator", "h", "rtol"])
     doc.add(Para(_verdicts(runs)))
@@ -71,10 +72,10 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors) ->
     entries = [e for e in entries if e["lanes"]]
     if entries:
         doc.add(Figure(f"{problem}-ensemble-distributions",
-                       figures.distributions(entries, colors, problem),
+                       draw(figures.distributions, entries, colors, problem),
                        "Per-lane distributions, one box per run: the box spans the middle "
                        "half of the lanes, the whiskers every lane, the line the median."))
-    doc.add(Figure(f"{problem}-ensemble-cost", figures.ensemble_cost(runs, colors, problem),
+    doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
                    "Left: the median lane against wall time per lane, the band from the best "
                    "lane to the worst. Right: the fraction of lanes that failed against the "
                    "setting."))

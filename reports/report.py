@@ -82,33 +82,40 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     # Ensembles have a section of their own; every other section shows single runs.
     ensembles = current[current["lanes"].notna()] if not current.empty else current
     current = current[current["lanes"].isna()] if not current.empty else current
+    with figures.Drawing() as draw:
+        doc = _document(runs, current, ensembles, artifacts, series, scaling_data, draw,
+                        targets, wp)
+        built = f"Report built {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {db_path.name}."
+        doc.add(Para(built))
+        md, written = to_markdown(doc, out_dir)
+        md_path, html_path = out_dir / "report.md", out_dir / "report.html"
+        replace_file(md_path, md)
+        replace_file(html_path, to_html(doc, [built]))
+    return [md_path, html_path, *written]
+
+
+def _document(runs, current, ensembles, artifacts, series, scaling_data, draw, targets,
+              wp) -> Document:
+    """The report's blocks, its figures submitted to ``draw`` (:class:`figures.Drawing`)."""
     members = _families(runs)
     colors = figures.palette(members)
-
     doc = Document(TITLE)
     doc.add(Para(_scope(runs, pd.concat([current, ensembles]))))
     if members:
         doc.add(Para("Families (one hue each in the figures, a shade and marker per "
                      "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
                                                  for f, k in members.items()) + "."))
-    _headline(doc, current, colors)
-    _history(doc, runs)
+    _headline(doc, current, colors, draw)
+    _history(doc, runs, draw)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
-                 tuple(targets), wp)
-    ensemble_section.section(doc, ensembles, series, colors)
+                 tuple(targets), wp, draw)
+    ensemble_section.section(doc, ensembles, series, colors, draw)
     _studies(doc, artifacts)
     if scaling_data is not None:
-        scaling_section.section(doc, scaling_data)
+        scaling_section.section(doc, scaling_data, draw)
     _provenance(doc, runs, pd.concat([current, ensembles]))
-    built = f"Report built {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {db_path.name}."
-    doc.add(Para(built))
-
-    md, written = to_markdown(doc, out_dir)
-    md_path, html_path = out_dir / "report.md", out_dir / "report.html"
-    replace_file(md_path, md)
-    replace_file(html_path, to_html(doc, [built]))
-    return [md_path, html_path, *written]
+    return doc
 
 
 def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
@@ -139,7 +146,7 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
 
 # --------------------------------------------------------------------------- headline
 
-def _headline(doc: Document, current: pd.DataFrame, colors: dict) -> None:
+def _headline(doc: Document, current: pd.DataFrame, colors: dict, draw) -> None:
     doc.heading(2, "Headline")
     if current.empty:
         doc.add(Para("No runs."))
@@ -147,8 +154,9 @@ def _headline(doc: Document, current: pd.DataFrame, colors: dict) -> None:
     problems = sorted(current["problem"].unique())
     subs = {p: current[current["problem"] == p] for p in problems}
     costs = {p: cost_winner(sub) for p, sub in subs.items()}
-    doc.add(Figure("headline", figures.overview({p: standings(sub) for p, sub in subs.items()},
-                                                {p: c.integrator for p, c in costs.items()}),
+    doc.add(Figure("headline", draw(figures.overview,
+                                    {p: standings(sub) for p, sub in subs.items()},
+                                    {p: c.integrator for p, c in costs.items()}),
                    "Every problem and method: the cell's colour is the growth class of max |g| "
                    "in the method's run at the longest horizon, its text max(|g|, |G v + g_t|) "
                    "of that run; a black frame marks the cost winner by wall time at matched "
@@ -170,7 +178,7 @@ def _headline(doc: Document, current: pd.DataFrame, colors: dict) -> None:
                     costs[p].accuracy, costs[p].by_wall, costs[p].by_evals] for p in problems]))
 
 
-def _history(doc: Document, runs: pd.DataFrame) -> None:
+def _history(doc: Document, runs: pd.DataFrame, draw) -> None:
     if runs.empty or runs["commit"].nunique(dropna=False) < 2:
         return
     doc.heading(2, "History across commits")
@@ -185,7 +193,7 @@ def _history(doc: Document, runs: pd.DataFrame) -> None:
     doc.add(Table(["commit", "first run", "runs"],
                   [[c["label"], time.strftime("%Y-%m-%d %H:%M", time.localtime(c["started"])),
                     str(c["runs"])] for _, c in hist.commits.iterrows()]))
-    doc.add(Figure("history", figures.history(hist),
+    doc.add(Figure("history", draw(figures.history, hist),
                    "One panel per gated metric, one grey line per run identity; red crosses "
                    "mark regressions (listed below)."))
     if hist.regressions:
@@ -269,7 +277,8 @@ def _floor_note(runs: pd.DataFrame) -> str:
 
 
 def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
-             levels: tuple[float, ...], wp: tuple[tuple[str, ...], tuple[str, ...]]) -> None:
+             levels: tuple[float, ...], wp: tuple[tuple[str, ...], tuple[str, ...]],
+             draw) -> None:
     doc.heading(2, f"Problem: {problem}", collapsible=True)
     n_bad = int((runs["status"] != Status.OK).sum())
     horizons = ", ".join(fmt(x) for x in sorted(runs["t_end"].dropna().unique()))
@@ -283,7 +292,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
     doc.heading(3, f"{problem}: drift and energy error against cost")
     cost = cost_winner(runs)
     doc.add(Figure(f"{problem}-standing",
-                   figures.standing(standings(runs), colors, problem, cost.integrator),
+                   draw(figures.standing, standings(runs), colors, problem, cost.integrator),
                    f"Each method once. Across: the median wall time of its cheapest run "
                    f"reaching the matched accuracy ({cost.accuracy}); hollow markers: the "
                    f"most accurate run of a method that never reached it. Up: max(|g|, "
@@ -310,7 +319,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
         entries.append({"label": f"{r['integrator']} {setting(r)}, t_end={fmt(r['t_end'])}"
                                  + (f" ({r['status']})" if failed else ""),
                         "integrator": r["integrator"], "windows": windows, "failed": failed})
-    doc.add(Figure(f"{problem}-drift", figures.drift(entries, colors, problem),
+    doc.add(Figure(f"{problem}-drift", draw(figures.drift, entries, colors, problem),
                    "Window maxima of |g| and |H - H0| against t (log-log), one run per "
                    "integrator: the longest horizon, a finished run where there is one, the "
                    "coarsest setting. A cross marks where a failed run stopped; zeros are drawn "
@@ -323,8 +332,8 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
     x, y = wp
     floor = largest_floor(sweep)
     doc.add(Figure(f"{problem}-work-precision",
-                   figures.work_precision(sweep, colors, f"{problem}, t_end = {horizon}", x, y,
-                                          floor),
+                   draw(figures.work_precision, sweep, colors, f"{problem}, t_end = {horizon}",
+                        x, y, floor),
                    f"{', '.join(LABELS[c] for c in y)} against {', '.join(LABELS[c] for c in x)} "
                    f"at t_end = {horizon} (the horizon of the sweeps); each line joins the "
                    f"finished runs of one integrator over its settings ({n_ok} runs; "
@@ -345,7 +354,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
     doc.heading(3, f"{problem}: convergence")
     convs, basis = convergence(runs)
     doc.add(Figure(f"{problem}-convergence",
-                   figures.convergence(convs, colors, f"{problem}: convergence", basis),
+                   draw(figures.convergence, convs, colors, f"{problem}: convergence", basis),
                    f"Fixed-step methods only; {basis}. Filled markers: fitted points; hollow: "
                    f"left out (at the reference floor or round-off). Dashed: slope of the "
                    f"nominal order."))

@@ -54,8 +54,9 @@ def _mib(nbytes) -> str:
     return "" if nbytes is None else f"{nbytes / 2**20:.0f}"
 
 
-def section(doc: Document, data: dict) -> None:
-    """Append the scaling section to ``doc``."""
+def section(doc: Document, data: dict, draw) -> None:
+    """Append the scaling section to ``doc``, its figure drawn by ``draw``
+    (:class:`reports.figures.Drawing`)."""
     s, points = data["settings"], data["points"]
     doc.heading(2, "Scaling: cost per step against size")
     steps = ", ".join(f"h = {fmt(h)} on {p}" for p, h in s["h"].items() if p in s["problems"])
@@ -91,7 +92,7 @@ def section(doc: Document, data: dict) -> None:
                           "key": None if family == C_NAME else family,
                           "n": [n for n, _ in done], "cost": [c for _, c in done]})
         panels.append((problem, lines))
-    doc.add(Figure("scaling", figures.scaling(panels, colors),
+    doc.add(Figure("scaling", draw(figures.scaling, panels, colors),
                    "Time per step against N (log-log): one line per family through its "
                    "finished points (a line ends where its family stopped; the table says "
                    "why), C dashed, and a dotted line of slope 1."))
@@ -125,7 +126,8 @@ def write(data: dict, out: Path) -> list[Path]:
     """The section alone as ``out/scaling.md`` (figure under ``out/figures``) and
     ``out/scaling.html``; returns the paths written."""
     doc = Document("driftbench scaling")
-    section(doc, data)
+    # One figure: drawn here, as it is submitted.
+    section(doc, data, figures.Drawing(jobs=1))
     md, written = to_markdown(doc, out)
     md_path, html_path = out / "scaling.md", out / "scaling.html"
     replace_file(md_path, md)

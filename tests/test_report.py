@@ -321,3 +321,28 @@ def test_a_drift_figure_draws_a_run_that_blew_up():
              "failed": True, "fail_time": 0.77}
     svg = figures.drift([entry], {"baumgarte-rk4": ("#1f77b4", "o")}, "bricard")
     assert svg.lstrip().startswith("<") and "</svg>" in svg
+
+
+def test_figures_drawn_in_worker_processes_equal_those_drawn_here():
+    """The report's figures are drawn side by side in spawned processes (``Drawing``): the
+    same SVG text as drawn in this process, and a figure that raises raises where its SVG
+    is read."""
+    from reports import figures
+    from reports.document import Figure, svg_text
+
+    windows = {"t": np.array([0.5, 1.0, 2.0]), "pos": np.array([1e-16, 2e-16, 4e-16]),
+               "energy": np.array([1e-8, 2e-8, 3e-8])}
+    entry = {"label": "rattle h=0.01", "integrator": "rattle", "windows": windows,
+             "failed": False}
+    colors = {"rattle": ("#1f77b4", "o")}
+    here = figures.drift([entry], colors, "pendulum")
+    with figures.Drawing(jobs=2) as draw:
+        assert draw.jobs == 2
+        drawn = draw(figures.drift, [entry], colors, "pendulum")
+        broken = draw(figures.drift, [{"label": "no windows"}], colors, "pendulum")
+        assert svg_text(Figure("drift", drawn)) == here
+        with pytest.raises(KeyError):
+            svg_text(Figure("broken", broken))
+    with figures.Drawing(jobs=1) as draw:
+        with pytest.raises(KeyError):
+            svg_text(Figure("broken", draw(figures.drift, [{"label": "x"}], colors, "p")))
