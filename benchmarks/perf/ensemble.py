@@ -22,6 +22,13 @@ Rates
     second at least :data:`BARS` ``["rattle"]`` times its one-trajectory steps per second,
     ``lobatto3ab3``'s at least ``BARS["lobatto3ab3"]`` times.
 
+The plain step
+    With ``--plain``, the pendulum's RATTLE step alone (:func:`plain`: the same equations,
+    Newton on the multiplier to ``|g| <= 4e-16``, nothing else: no recording of
+    ``|g|``, ``|G v|`` or the energy, no failure test, no segments), as one trajectory and
+    vmapped over the same lanes. Its rates are what XLA makes of batching the bare step on
+    this machine, beside what the suite's loop achieves with its bookkeeping.
+
 Memory
     ``rattle`` on ``chain:N=8`` with 16384 lanes, in fresh processes: the peak resident set
     (``VmHWM``) of the whole run (drawing the states, compiling, solving, reading back) at
@@ -36,6 +43,7 @@ Usage::
     python -m benchmarks.perf.ensemble
     python -m benchmarks.perf.ensemble --lanes 1 256 1024 --skip-memory
     python -m benchmarks.perf.ensemble --device gpu --receiver
+    python -m benchmarks.perf.ensemble --methods rattle --problems pendulum --plain
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import integrators
@@ -58,6 +67,7 @@ from benchmarks.perf.throughput import run_c
 from benchmarks.plan import DEVICES, ENSEMBLE_GRID, jax_device
 from benchmarks.records import CommandParser
 from integrators.base import Grid
+from linalg.dense import solve as dense_solve
 from problems.ensemble import draw
 
 #: Lane-steps per second over one trajectory's steps per second, at :data:`BAR_LANES` lanes
@@ -116,6 +126,56 @@ def rates(method: str, problem: str, steps: int, h: float, lanes: list[int], rep
     return out
 
 
+def plain(steps: int, h: float, lanes: list[int], repeats: int, device: jax.Device) -> None:
+    """RATTLE's step on the pendulum and nothing else (module notes), one trajectory on
+    the CPU and vmapped over ``lanes`` on ``device``."""
+    case = problems.make("pendulum")
+    mech, t = case.mech, jnp.float64(case.t0)
+
+    def step(state, _):
+        q0, p0, iterations = state
+        F0, G0 = -mech.H_q(q0, p0), mech.G(q0, t)
+
+        def half(lam):
+            p_half = p0 + 0.5 * h * (F0 - G0.T @ lam)
+            return p_half, q0 + h * mech.H_p(q0, p_half)
+
+        def residual(lam):
+            return mech.g(half(lam)[1], t)
+
+        def body(state):
+            lam, r, k = state
+            lam = lam - dense_solve(jax.jacfwd(residual)(lam), r)
+            return lam, residual(lam), k + 1
+
+        lam0 = jnp.zeros(mech.m)
+        lam, _, k = jax.lax.while_loop(
+            lambda state: (jnp.max(jnp.abs(state[1])) > 4e-16) & (state[2] < 50), body,
+            (lam0, residual(lam0), 0))
+        p_half, q1 = half(lam)
+        base = p_half - 0.5 * h * mech.H_q(q1, p_half)
+        G1 = mech.G(q1, t)
+        mu = dense_solve(0.5 * h * G1 @ mech.solve_mass(q1, G1.T), G1 @ mech.H_p(q1, base))
+        return (q1, base - 0.5 * h * G1.T @ mu, iterations + k), None
+
+    def run(q0, v0):
+        return jax.lax.scan(step, (q0, mech.momentum(q0, v0), 0), None, length=steps)[0]
+
+    q0s, v0s = draw(case, max(lanes), seed=0)
+    with jax.default_device(jax_device("cpu")):
+        one = jax.jit(run).lower(q0s[0], v0s[0]).compile()
+        seconds, out = timed(lambda: jax.block_until_ready(one(q0s[0], v0s[0])), repeats)
+    single = steps / seconds
+    print(f"\nplain RATTLE step on pendulum (no recording, no failure test): one trajectory "
+          f"{single:.3g} steps/s ({int(out[2]) / steps:.2f} Newton iterations per step)")
+    for k in lanes:
+        with jax.default_device(device):
+            batch = jax.jit(jax.vmap(run)).lower(q0s[:k], v0s[:k]).compile()
+            seconds, _ = timed(lambda: jax.block_until_ready(batch(q0s[:k], v0s[:k])), repeats)
+        print(f"  {k:6d} lanes on {device.platform}: {k * steps / seconds:.3g} lane-steps/s = "
+              f"{k * steps / seconds / single:.2f} x its one trajectory", flush=True)
+
+
 CHILD = """
 import json, sys, time
 from benchmarks.perf.processes import like_a_worker, peak_rss
@@ -123,6 +183,7 @@ like_a_worker()
 import jax, integrators, problems
 from benchmarks.plan import ENSEMBLE_GRID, jax_device
 from integrators.base import Grid
+from linalg.dense import solve as dense_solve
 from problems.ensemble import draw
 lanes, steps, h = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 device = jax_device(sys.argv[4])
@@ -204,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--memory-lanes", type=int, default=16384)
     parser.add_argument("--memory-steps", type=float, nargs="+", default=[1e3, 1e4, 1e5])
     parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument("--plain", action="store_true",
+                        help="also time the bare RATTLE step on the pendulum (module notes)")
     parser.add_argument("--receiver", action="store_true",
                         help="check the 256-lane sps-receiver ensemble (module notes)")
     parser.add_argument("--device", choices=DEVICES, default="auto",
@@ -236,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         ratio = got / results[method, "pendulum"]["single"]
         print(f"  {method} at {BAR_LANES} lanes: {ratio:.2f} x (bar {bar:g} x): "
               f"{'holds' if ratio >= bar else 'NOT met'}")
+    if args.plain:
+        plain(steps, args.h, sorted(args.lanes), args.repeats, device)
     if args.receiver:
         receiver(device)
     ok = args.skip_memory or memory(args.memory_lanes, [int(n) for n in args.memory_steps],
