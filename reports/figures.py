@@ -54,12 +54,18 @@ class Drawing:
     ``drawing(fn, *args)`` submits the figure function ``fn`` (one of this module's) and
     returns a :class:`~concurrent.futures.Future` of its SVG text, which the document reads
     when it writes the figure (:func:`reports.document.svg_text`). matplotlib draws in
-    Python, one figure at a time per process, and drawing was most of a report's build
-    (the quick suite's 25 figures: 10 s of its 12 s); with ``jobs`` processes it takes
-    about ``1 / jobs`` of that. Workers are started (spawned: the calling process may hold
-    JAX's threads, which a fork would copy in an unknown state) on the first submission;
-    with one usable core the figures are drawn in this process, as they are submitted. A
-    figure function that raises raises where its SVG is read.
+    Python, one figure at a time per process, and drawing was about three quarters of a
+    report's build; with two processes the quick suite's report took 7.1 s instead of
+    10.0 s (load about 1.5; the rest is the tables' analysis, in this process). Workers
+    are spawned (the calling process may hold JAX's threads, which a fork would copy in an
+    unknown state) at the first submission. A figure function that raises raises where
+    its SVG is read.
+
+    Parameters
+    ----------
+    jobs : int, optional
+        Processes that draw (default: the usable cores). With one, each figure is drawn in
+        this process as it is submitted.
     """
 
     def __init__(self, jobs: int | None = None):
