@@ -222,24 +222,11 @@ def at_floor(row) -> bool:
     return floor > 0.0 and not math.isnan(err) and err <= floor
 
 
-def verdict_floor(row) -> float:
-    """The smallest final error a verdict tells apart: the reference floor, and at least
-    the round-off plateau :data:`ORDER_FLOOR` (below it, differences are round-off)."""
-    return max(reference_floor(row), ORDER_FLOOR)
-
-
-def accuracy(row, column: str) -> float:
-    """The value of a precision metric that a verdict may use: a final error counts as no
-    smaller than :func:`verdict_floor` (below it, the reference or round-off cannot tell
-    runs apart)."""
-    value = _num(row.get(column))
-    if column == "final_state_error" and not math.isnan(value):
-        return max(value, verdict_floor(row))
-    return value
-
-
 def accuracies(runs: pd.DataFrame, column: str) -> np.ndarray:
-    """:func:`accuracy` of every row of ``runs``, computed column-wise."""
+    """The values of a precision metric that a verdict may use, one per row of ``runs``: a
+    final error counts as no smaller than the run's reference floor and the round-off
+    plateau :data:`ORDER_FLOOR` (below them, the reference or round-off cannot tell runs
+    apart)."""
     value = pd.to_numeric(runs[column], errors="coerce").to_numpy(dtype=float)
     if column == "final_state_error":
         floor = pd.to_numeric(runs["reference_floor"], errors="coerce").fillna(0.0) \
@@ -521,7 +508,7 @@ def targets(runs: pd.DataFrame, levels=DEFAULT_TARGETS) -> list[Target]:
     reference exists and the problem is not chaotic) and each level: the cheapest finished
     run reaching it (:func:`cheapest`, by wall time and by evaluations) and the integrators
     that ran but never reached it, with their best value. A final-error level below
-    :func:`verdict_floor` cannot be checked and says so.
+    the reference floor or the round-off plateau cannot be checked and says so.
     """
     runs = at_sweep_horizon(runs)
     ok = runs[runs["status"] == Status.OK]

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from reports.analysis import (accuracy, at_floor, cheapest, convergence, cost_winner, fit,
+from reports.analysis import (accuracies, at_floor, cheapest, convergence, cost_winner, fit,
                               history, standings, targets, timing)
 
 
@@ -88,6 +88,10 @@ def test_timing_shows_the_spread_of_the_timed_solves():
 
 
 # --------------------------------------------------------------------------- floors
+
+def accuracy(row: dict, column: str) -> float:
+    return float(accuracies(pd.DataFrame([row]), column)[0])
+
 
 def test_a_final_error_at_the_floor_counts_as_the_floor():
     r = run("a", final=4.8e-12, floor=6e-12)
