@@ -57,6 +57,25 @@ CONNECT_LIMIT = 30.0
 POLL = 0.25
 
 
+class _GatherLeftovers(logging.Filter):
+    """Drop asyncio's "Task exception was never retrieved" for ``distributed``'s ``AllExit``.
+
+    ``Client._gather`` waits on each key in a task of its own and stops at the first that
+    ends without a result; the others then end with ``AllExit``, which nobody retrieves,
+    and asyncio logs each with a traceback. It happens when a result is gathered with a
+    time limit and its future is cancelled meanwhile (:func:`_outcome`, when a worker
+    leaves): an internal leftover of the gather, not an error of the run, which is
+    reported as ``error`` with its reason.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        return type(error).__name__ != "AllExit"
+
+
+logging.getLogger("asyncio").addFilter(_GatherLeftovers())
+
+
 # ---------------------------------------------------------------------------------------
 # The worker side: one pool process per Dask worker
 # ---------------------------------------------------------------------------------------
