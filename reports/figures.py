@@ -365,14 +365,14 @@ def work_precision(runs, colors: dict, title: str, x: tuple[str, ...], y: tuple[
 
 
 def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) -> str:
-    """Error against step size, log-log, with fitted and nominal orders in the legend and a
-    dashed slope of the nominal order through each method's finest fitted point. Points
-    left out of the fit (at the reference floor or round-off) are drawn hollow, and the
-    reference floor as a dotted line."""
+    """Error against step size, log-log (the report draws it when some run has a finite
+    error), with fitted and nominal orders in the legend and a dashed slope of the nominal
+    order through each method's finest fitted point. Points left out of the fit (at the
+    reference floor or round-off) are drawn hollow, and the reference floor as a dotted
+    line."""
     with rc_context(RC):
         fig, axes = _figure(1, 1, 6.0, 4.2)
         ax = axes[0, 0]
-        drawn = 0
         for c in convs:
             keep = np.isfinite(c.err)
             if not keep.any():
@@ -391,17 +391,12 @@ def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) 
                 h0, e0 = c.h[c.fitted][-1], c.err[c.fitted][-1]
                 hs = np.array([c.h[keep][0], h0])
                 ax.loglog(hs, e0 * (hs / h0) ** c.nominal, ls="--", lw=0.8, color=color)
-            drawn += 1
-        if drawn:
-            floor = max((c.floor for c in convs), default=0.0)
-            if floor > 0:
-                ax.axhline(floor, color="0.3", ls=":", lw=0.8,
-                           label=f"reference floor {fmt(floor)}")
-            ax.set_xlabel("h")
-            ax.set_ylabel("error")
-            ax.legend(loc="best")
-        else:
-            _empty(ax, "no finished fixed-step runs")
+        floor = max((c.floor for c in convs), default=0.0)
+        if floor > 0:
+            ax.axhline(floor, color="0.3", ls=":", lw=0.8, label=f"reference floor {fmt(floor)}")
+        ax.set_xlabel("h")
+        ax.set_ylabel("error")
+        ax.legend(loc="best")
         # The basis names the reference and its floor: wrapped to the axis' width.
         ax.set_title(textwrap.fill(basis, 100), fontsize=7)
         _arrange(fig, 1, 1)

@@ -22,6 +22,7 @@ import time
 from functools import lru_cache
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from benchmarks.files import replace_file
@@ -353,6 +354,12 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
 
     doc.heading(3, f"{problem}: convergence")
     convs, basis = convergence(runs)
+    if not any(np.isfinite(c.err).any() for c in convs):
+        # An empty log-log frame says nothing a sentence would not.
+        doc.add(Para(f"No convergence figure: {basis}." if basis.startswith("no ") else
+                     f"No convergence figure: no finished fixed-step run has an error against "
+                     f"another ({basis})."))
+        return
     doc.add(Figure(f"{problem}-convergence",
                    draw(figures.convergence, convs, colors, f"{problem}: convergence", basis),
                    f"Fixed-step methods only; {basis}. Filled markers: fitted points; hollow: "

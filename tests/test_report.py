@@ -273,6 +273,21 @@ def test_the_reference_floor_replaces_errors_below_it(tmp_path):
     assert "too few points above the reference floor" in md
 
 
+def test_a_problem_without_errors_to_plot_gets_a_sentence_not_an_empty_convergence_figure(
+        tmp_path):
+    """One fixed-step run without a reference is its own reference: nothing to plot."""
+    db = tmp_path / "driftbench.sqlite"
+    with Store(db) as st:
+        session = st.begin("unit")
+        st.add(session, run("chain", "rattle", 1e-3, t_end=2.0))
+        for h, final in ((0.1, 1e-4), (0.05, 2.5e-5)):
+            st.add(session, run("pendulum", "rattle", h, final=final))
+    md = build(db, tmp_path)[0].read_text()
+    assert "No convergence figure: no finished fixed-step run has an error against another" in md
+    assert "(figures/chain-convergence.svg)" not in md
+    assert "(figures/pendulum-convergence.svg)" in md
+
+
 def test_bad_command_line_input_is_one_line_and_exit_2(tmp_path, capsys):
     from reports.__main__ import main
 
