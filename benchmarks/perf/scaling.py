@@ -549,7 +549,7 @@ def write(out: Path, data: dict, points: list[Point]) -> list[Path]:
 def parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m benchmarks.perf.scaling", description=__doc__.split("\n")[0])
     p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
-                   help="problems (default: chain sps-ring rigid-chain)")
+                   help=f"problems (default: {' '.join(STEP_SIZES)})")
     p.add_argument("--n", nargs="+", type=int, default=list(SIZES),
                    help="sizes N (default: 64 256 1024 4096 16384)")
     p.add_argument("--families", nargs="+", default=list(FAMILIES),
@@ -557,8 +557,8 @@ def parser() -> argparse.ArgumentParser:
                         "ida-ggl)")
     p.add_argument("--steps", type=int, default=STEPS, help=f"steps per point (default {STEPS})")
     p.add_argument("--h", nargs="+", default=[], metavar="PROBLEM=H",
-                   help="step size of a problem, e.g. chain=2e-5 (default: chain=1e-5 "
-                        "sps-ring=1e-4 rigid-chain=5e-4)")
+                   help="step size of a problem, e.g. chain=2e-5 (default: "
+                        + " ".join(f"{k}={v:g}" for k, v in STEP_SIZES.items()) + ")")
     p.add_argument("--rtol", type=float, default=RTOL,
                    help=f"rtol = atol of adaptive families (default {RTOL:g})")
     p.add_argument("--limit", type=float, default=LIMIT,
