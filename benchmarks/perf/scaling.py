@@ -551,10 +551,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--problems", nargs="+", default=list(STEP_SIZES), choices=list(STEP_SIZES),
                    help=f"problems (default: {' '.join(STEP_SIZES)})")
     p.add_argument("--n", nargs="+", type=int, default=list(SIZES),
-                   help="sizes N (default: 64 256 1024 4096 16384)")
+                   help=f"sizes N (default: {' '.join(map(str, SIZES))})")
     p.add_argument("--families", nargs="+", default=list(FAMILIES),
-                   help="integrator keys or specs (default: rattle lobatto3ab3 baumgarte-rk4 "
-                        "ida-ggl)")
+                   help=f"integrator keys or specs (default: {' '.join(FAMILIES)})")
     p.add_argument("--steps", type=int, default=STEPS, help=f"steps per point (default {STEPS})")
     p.add_argument("--h", nargs="+", default=[], metavar="PROBLEM=H",
                    help="step size of a problem, e.g. chain=2e-5 (default: "
