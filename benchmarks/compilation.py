@@ -17,6 +17,19 @@ versions go to a folder of their own (:func:`folder`), so an upgrade starts afre
 leaves the old folder to :func:`clear`. Executables that call back into Python (the SuperLU
 path) are never written by JAX: their set-up compiles every time.
 
+Programs kept whole
+-------------------
+JAX needs a program traced and lowered to compute its key, which is most of a warm
+set-up. The main programs of a run (the time loop, the start, the recorder's measures,
+the case's projection: everything :func:`linalg.compiled.compile_lifted` compiles) are
+also kept whole, serialized executables that load without tracing, in the folder's
+``programs/`` (:func:`programs`; bound :data:`linalg.compiled.KEPT_MAX_BYTES`). They are
+named by :func:`identity`: the hash of this project's code (every file of
+:data:`CODE_PACKAGES`), the versions of :data:`LIBRARIES`, ``XLA_FLAGS``, the run's
+resolved problem, method, settings and device, and then per program its call site,
+function and argument shapes (:mod:`linalg.compiled`). Only runs of the project's own
+problems and methods keep programs: a plug-in's code is not in the hash.
+
 Bound and clearing
 ------------------
 The folder is kept under :data:`MAX_BYTES` (JAX evicts the least recently used entries, under
@@ -35,14 +48,21 @@ compiled it already, ``off`` without a cache).
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
+import json
 import os
+import platform
 import shutil
 import sys
 import threading
+from importlib import metadata
 from pathlib import Path
 
 import jax
 import jaxlib
+
+from linalg.compiled import KEPT_EVENT
 
 #: Environment variable naming the cache folder, or ``off``.
 ENV = "DRIFTBENCH_COMPILE_CACHE"
@@ -55,7 +75,13 @@ MIN_COMPILE_S = 0.0
 
 _lock = threading.Lock()
 #: Executables read from the cache, and backend compilations (each one, read or compiled).
-_counts = {"/jax/compilation_cache/cache_hits": 0, "/jax/core/compile/backend_compile_duration": 0}
+_counts = {"/jax/compilation_cache/cache_hits": 0, "/jax/core/compile/backend_compile_duration": 0,
+           KEPT_EVENT: 0}
+#: The packages whose files make up the code hash of :func:`identity`.
+CODE_PACKAGES = ("integrators", "problems", "linalg")
+#: The libraries whose versions :func:`identity` includes.
+LIBRARIES = ("jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optimistix",
+             "asdex", "scikit-sundae")
 _enabled: list[Path | None] = []
 
 
@@ -118,11 +144,45 @@ def active() -> Path | None:
     return _enabled[0] if _enabled else None
 
 
+def programs() -> Path | None:
+    """The folder of programs kept whole (``None``: the cache is off or not enabled)."""
+    where = active()
+    return None if where is None else where / "programs"
+
+
+@functools.lru_cache(maxsize=1)
+def _code_and_libraries() -> str:
+    digest = hashlib.sha256()
+    base = Path(__file__).resolve().parent.parent
+    for package in CODE_PACKAGES:
+        for path in sorted((base / package).rglob("*")):
+            if path.is_file() and "__pycache__" not in path.parts:
+                digest.update(str(path.relative_to(base)).encode())
+                digest.update(path.read_bytes())
+    versions = {}
+    for name in LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return json.dumps([digest.hexdigest(), versions, sys.version, platform.machine()])
+
+
+def identity(*parts) -> str:
+    """The name of what a scope of :func:`linalg.compiled.keeping` compiles: this code's
+    hash, the library versions, ``XLA_FLAGS`` (read now: it is fixed once JAX has
+    started) and ``parts`` (JSON; the run's resolved problem, method and settings)."""
+    text = json.dumps([_code_and_libraries(), os.environ.get("XLA_FLAGS", ""), parts],
+                      default=repr, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 class Watch:
     """Counts the compilations inside a ``with`` block and where they came from.
 
     Attributes, after the block: ``compiled`` (backend compilations, the cached ones
-    excluded), ``hits`` (executables read from the cache) and :attr:`source`.
+    excluded), ``kept`` (programs loaded whole, :mod:`linalg.compiled`), ``hits``
+    (executables read from JAX's cache, and ``kept``) and :attr:`source`.
     """
 
     def __enter__(self) -> "Watch":
@@ -132,8 +192,10 @@ class Watch:
 
     def __exit__(self, *exc) -> None:
         with _lock:
-            self.hits, backend = (now - then for now, then in zip(_counts.values(), self._start))
-        self.compiled = backend - self.hits
+            read, backend, kept = (now - then for now, then in zip(_counts.values(), self._start))
+        self.compiled = backend - read
+        self.kept = kept
+        self.hits = read + kept
 
     @property
     def source(self) -> str:
@@ -148,9 +210,10 @@ class Watch:
 
 
 def size(where: Path) -> tuple[int, int]:
-    """Number of entries and bytes in a cache folder."""
+    """Number of entries (JAX's executables and kept programs) and bytes in a cache folder."""
     files = [p for p in where.rglob("*") if p.is_file() and not p.name.startswith(".")]
-    return sum(p.name.endswith("-cache") for p in files), sum(p.stat().st_size for p in files)
+    return (sum(p.name.endswith(("-cache", ".program")) for p in files),
+            sum(p.stat().st_size for p in files))
 
 
 def clear(base: Path) -> None:

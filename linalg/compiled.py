@@ -14,11 +14,37 @@ process from 2.1 to 3.5 GB.
 value, kept with the executable), and compiles. Smaller constants stay in the program,
 where XLA may fold them, so small systems compile as before. What the compiler freed is
 then given back to the system (:func:`give_back_heap`).
+
+Programs kept on disk
+---------------------
+JAX's persistent cache (:mod:`benchmarks.compilation`) spares XLA's compilation but not
+tracing and lowering, which it needs for its key: a warm set-up of a small problem is
+still 0.2 to 0.7 s, most of it Python. Inside :func:`keeping` (a folder and an identity),
+:func:`compile_lifted` keeps what it compiles as a file: the serialized executable, its
+argument and result structure and the lifted constants; a later process in the same
+scope loads it without tracing. The identity must determine every program compiled in
+the scope: the caller gives the run's resolved problem and method, settings, device, the
+code's hash and the library versions (:func:`benchmarks.execute.execute`), and each program
+is then named by its call site, function, argument shapes and the order of such calls in
+the scope. Programs that call back into Python (``pure_callback``: the SuperLU path)
+are never kept, and neither are those whose lifted constants exceed :data:`KEEP_BYTES`.
+A file that cannot be read back is compiled afresh and overwritten; the folder is kept
+under :data:`KEPT_MAX_BYTES` by dropping the least recently used files.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import ctypes
+import hashlib
+import io
+import os
+import pickle
+import sys
+import tempfile
+import threading
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -27,6 +53,13 @@ import numpy as np
 
 #: Constants of at least this many bytes become arguments.
 LIFT_BYTES = 1 << 14
+#: Programs whose lifted constants exceed this many bytes are not kept on disk: a large
+#: system's index arrays cost more to store and read than to derive.
+KEEP_BYTES = 64 << 20
+#: Most bytes the folder of kept programs holds before the least recently used go.
+KEPT_MAX_BYTES = 1 << 30
+#: Event recorded (``jax.monitoring``) for each program loaded from the folder.
+KEPT_EVENT = "/driftbench/compiled/kept_program_loaded"
 
 
 def _malloc_trim() -> Callable[[int], int] | None:
@@ -84,9 +117,198 @@ class Lifted:
         return sum(v.nbytes for v in self._values)
 
 
+class _Keeper:
+    """The folder and identity of a :func:`keeping` scope, and the calls made in it."""
+
+    def __init__(self, folder: Path, identity: str):
+        self.folder, self.identity = folder, identity
+        self.calls: dict[str, int] = {}
+
+    def path(self, fn: Callable, args: tuple, static: dict) -> Path:
+        caller = sys._getframe(2)
+        site = f"{Path(caller.f_code.co_filename).name}:{caller.f_lineno}"
+        inner = getattr(fn, "func", fn)
+        name = f"{getattr(inner, '__module__', '')}.{getattr(inner, '__qualname__', inner)}"
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        shapes = [(np.shape(x), str(getattr(x, "dtype", type(x))),
+                   bool(getattr(x, "weak_type", False))) for x in leaves]
+        plain = sorted((k, repr(v)) for k, v in static.items()
+                       if isinstance(v, (str, int, float, bool, type(None))))
+        call = repr((site, name, str(tree), shapes, plain))
+        order = self.calls.get(call, 0)
+        self.calls[call] = order + 1
+        digest = hashlib.sha256(f"{self.identity}\n{call}\n{order}".encode()).hexdigest()
+        return self.folder / f"{digest[:40]}.program"
+
+    def load(self, path: Path) -> "Lifted | None":
+        from jax.experimental import serialize_executable
+        if not _lapack_ready():
+            return None
+        try:
+            with open(path, "rb") as f:
+                payload, in_tree, out_tree, values, result_tree = pickle.load(f)
+            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            os.utime(path)  # recently used: the last to be dropped
+        except Exception:  # missing, damaged or foreign: compiled afresh and written anew
+            return None
+        jax.monitoring.record_event(KEPT_EVENT)
+        return Lifted(compiled, [jnp.asarray(v) for v in values], result_tree)
+
+    def save(self, path: Path, compiled, values: list[jax.Array], result_tree,
+             read: bytes | None) -> None:
+        """Write the program; ``read``: its executable as JAX's persistent cache held it
+        (``None``: compiled here), see :func:`_remember_cache_reads`."""
+        from jax.experimental import serialize_executable
+        if sum(v.nbytes for v in values) > KEEP_BYTES:
+            return
+        try:
+            if read is None:
+                payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+            else:
+                payload, in_tree, out_tree = _serialize_as_read(compiled, read)
+            with io.BytesIO() as buffer:
+                pickle.dump((payload, in_tree, out_tree, [np.asarray(v) for v in values],
+                             result_tree), buffer, protocol=pickle.HIGHEST_PROTOCOL)
+                data = buffer.getvalue()
+        except Exception:  # not serializable (a pytree node pickle does not know): not kept
+            return
+        # Written whole, then renamed: a process reading it never sees part of a file. A
+        # full or read-only disk only leaves the program not kept.
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            fd, temporary = tempfile.mkstemp(dir=self.folder, suffix=".part")
+        except OSError:
+            return
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(temporary, path)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+            return
+        _bound(self.folder, KEPT_MAX_BYTES)
+
+
+#: The serialized executable that JAX's persistent cache last read in this thread.
+_read = threading.local()
+
+
+def _remember_cache_reads() -> None:
+    """Have JAX's persistent cache leave the bytes of each executable it reads in
+    :data:`_read`.
+
+    An XLA:CPU executable loaded from serialized bytes cannot be serialized again (the
+    copy lacks its kernels: "Function ... not found" when called), so a program that JAX's
+    cache served is kept from the bytes that cache read. JAX has no hook for this; its
+    function that splits a cache entry into executable and compile time is wrapped (once;
+    where it is missing, such programs are only not kept).
+    """
+    from jax._src import compilation_cache
+    split = getattr(compilation_cache, "extract_executable_and_time", None)
+    if split is None or getattr(split, "remembers", False):
+        return
+
+    def extract_executable_and_time(entry):
+        serialized, compile_time = split(entry)
+        _read.serialized = serialized
+        return serialized, compile_time
+
+    extract_executable_and_time.remembers = True
+    compilation_cache.extract_executable_and_time = extract_executable_and_time
+
+
+def _serialize_as_read(compiled, serialized: bytes):
+    """:func:`jax.experimental.serialize_executable.serialize` with the executable's bytes
+    as JAX's cache read them."""
+    from jax.experimental import serialize_executable
+
+    class Pickler(serialize_executable._JaxPjrtPickler):
+        def persistent_id(self, obj):
+            if obj is executable:
+                return ("exec", serialized)
+            return super().persistent_id(obj)
+
+    unloaded = compiled._executable._unloaded_executable
+    executable = unloaded.xla_executable
+    flat, in_tree = jax.tree_util.tree_flatten(compiled.args_info)
+    with io.BytesIO() as f:
+        Pickler(f).dump((unloaded, flat, compiled._no_kwargs))
+        return f.getvalue(), in_tree, compiled.out_tree
+
+
+def _lapack_ready() -> bool:
+    """Bind jaxlib's LAPACK kernels, as lowering a LAPACK call would.
+
+    A program loaded without being lowered in this process calls LAPACK through pointers
+    that only this binding sets: without it the first solve crashes the process. JAX's
+    own loader of serialized programs does the same; where the function is missing, no
+    program is loaded.
+    """
+    try:
+        from jax._src.lax.linalg import initialize_lapack
+        initialize_lapack()
+    except (ImportError, AttributeError):
+        return False
+    return True
+
+
+def _bound(folder: Path, limit: int) -> None:
+    """Drop the least recently used programs of ``folder`` until they take at most
+    ``limit`` bytes."""
+    entries = []
+    for entry in os.scandir(folder):
+        if not entry.name.endswith(".program"):
+            continue
+        with contextlib.suppress(OSError):
+            info = entry.stat()
+            entries.append((info.st_mtime, info.st_size, entry.path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries):
+        if total <= limit:
+            break
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+            total -= size
+
+
+_keeper: contextvars.ContextVar[_Keeper | None] = contextvars.ContextVar("keeper", default=None)
+
+
+@contextlib.contextmanager
+def keeping(folder: Path | None, identity: str):
+    """Keep the programs :func:`compile_lifted` compiles inside the block in ``folder``, and
+    load those kept by an earlier block with the same ``identity`` (module notes).
+
+    ``identity`` must determine every program compiled in the block; ``folder`` ``None``
+    keeps nothing.
+    """
+    if folder is not None:
+        _remember_cache_reads()
+    token = _keeper.set(None if folder is None else _Keeper(Path(folder), identity))
+    try:
+        yield
+    finally:
+        _keeper.reset(token)
+
+
+def _calls_back(jaxpr) -> bool:
+    """Whether a jaxpr (or one nested in it) calls back into Python."""
+    for eqn in jaxpr.eqns:
+        if "callback" in eqn.primitive.name:
+            return True
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (tuple, list)) else (param,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns") and _calls_back(inner):
+                    return True
+    return False
+
+
 def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
     """``jax.jit(fn).lower(*args, **static).compile()`` with the constants of at least
-    :data:`LIFT_BYTES` passed as arguments (module notes).
+    :data:`LIFT_BYTES` passed as arguments (module notes); inside :func:`keeping`, the
+    program kept by an earlier process is loaded instead, or this one kept.
 
     Parameters
     ----------
@@ -96,6 +318,12 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
     *args
         Arrays (or shape-dtype structures) of the call's shapes.
     """
+    keeper = _keeper.get()
+    path = keeper.path(fn, args, static) if keeper is not None else None
+    if path is not None:
+        kept = keeper.load(path)
+        if kept is not None:
+            return kept
     jitted = fn if hasattr(fn, "trace") else jax.jit(fn)
     traced = jitted.trace(*args, **static)
     closed = traced.jaxpr
@@ -127,6 +355,10 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
         return jax.core.eval_jaxpr(jaxpr, bound, *flat)
 
     flat_args = jax.tree_util.tree_leaves(args)
-    compiled = jax.jit(run).lower(values, *flat_args).compile()
+    lowered = jax.jit(run).lower(values, *flat_args)
+    _read.serialized = None
+    compiled = lowered.compile()
     give_back_heap()
+    if path is not None and not _calls_back(jaxpr):
+        keeper.save(path, compiled, values, traced.out_tree, _read.serialized)
     return Lifted(compiled, values, traced.out_tree)

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.integrate import quad
 from scipy.special import ellipj, ellipk
 
 from problems import register
@@ -120,6 +119,10 @@ class EulerTop:
         return self.L * (J1 * w1 * w1 + J2 * w2 * w2) / (J1 * J1 * w1 * w1 + J2 * J2 * w2 * w2)
 
     def _phi_integral(self, a: float, b: float) -> float:
+        # Imported here: scipy.integrate takes 0.3 s to import, which every process that
+        # imports the problems (the command line, each worker) would pay for nothing.
+        from scipy.integrate import quad
+
         value, _ = quad(self._phi_rate, a, b, epsabs=1e-13, epsrel=1e-13, limit=200)
         return value
 

@@ -1,0 +1,145 @@
+"""Compile once: programs kept whole (:mod:`linalg.compiled`) and the persistent cache's
+bookkeeping (:mod:`benchmarks.compilation`).
+
+The end-to-end tests run the command line in fresh processes on a cache folder of their
+own, so that what a later process loads was written by an earlier one.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from benchmarks import compilation
+from linalg import compiled
+from linalg.compiled import compile_lifted, keeping
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def programs_in(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*.program"))
+
+
+def loaded(fn, *args, folder: Path, identity: str):
+    """Compile ``fn`` in a keeping scope; how many programs were loaded from ``folder``."""
+    with compilation.Watch() as watch, keeping(folder, identity):
+        out = compile_lifted(fn, *args)(*args)
+    return out, watch
+
+
+def test_a_kept_program_is_loaded_by_the_same_identity_and_gives_the_same_values(tmp_path):
+    def f(x):
+        return jnp.linalg.solve(jnp.eye(3) * 2.0 + x[:, None], x) + jnp.sin(x)
+
+    x = jnp.arange(3.0)
+    first, _ = loaded(f, x, folder=tmp_path, identity="run A")
+    assert len(programs_in(tmp_path)) == 1
+    again, watch = loaded(f, x, folder=tmp_path, identity="run A")
+    assert watch.kept == watch.hits == 1 and watch.compiled == 0 and watch.source == "warm"
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(first))
+    # Another identity is another program.
+    loaded(f, x, folder=tmp_path, identity="run B")
+    assert len(programs_in(tmp_path)) == 2
+
+
+def test_two_calls_of_one_site_in_a_scope_are_two_programs(tmp_path):
+    def scaled(scale):  # one call site, one function name, the same shapes
+        return float(compile_lifted(lambda x: x * scale, jnp.ones(2))(jnp.ones(2))[0])
+
+    with keeping(tmp_path, "same run"):
+        assert (scaled(2.0), scaled(3.0)) == (2.0, 3.0)
+    assert len(programs_in(tmp_path)) == 2
+    with compilation.Watch() as watch, keeping(tmp_path, "same run"):
+        assert (scaled(2.0), scaled(3.0)) == (2.0, 3.0)
+    assert watch.kept == 2
+
+
+def test_a_program_that_calls_back_into_python_is_not_kept(tmp_path):
+    def f(x):
+        y = jax.pure_callback(lambda a: np.asarray(a) * 2.0, jax.ShapeDtypeStruct((2,), x.dtype), x)
+        return y + 1.0
+
+    out, _ = loaded(f, jnp.ones(2), folder=tmp_path, identity="callback")
+    assert np.all(np.asarray(out) == 3.0)
+    assert programs_in(tmp_path) == []
+
+
+def test_a_damaged_program_is_compiled_afresh_and_replaced(tmp_path):
+    def f(x):
+        return x * 2.0 + 1.0
+
+    loaded(f, jnp.ones(2), folder=tmp_path, identity="damaged")
+    (path,) = programs_in(tmp_path)
+    path.write_bytes(b"not a program")
+    out, watch = loaded(f, jnp.ones(2), folder=tmp_path, identity="damaged")
+    assert np.all(np.asarray(out) == 3.0) and watch.kept == 0
+    assert path.read_bytes() != b"not a program"
+    _, watch = loaded(f, jnp.ones(2), folder=tmp_path, identity="damaged")
+    assert watch.kept == 1
+
+
+def test_the_folder_is_bounded_by_dropping_the_least_recently_used(tmp_path):
+    for i, age in enumerate((30, 10, 20)):
+        p = tmp_path / f"{i}.program"
+        p.write_bytes(b"x" * 100)
+        os.utime(p, (time.time() - age, time.time() - age))
+    compiled._bound(tmp_path, 200)
+    assert sorted(p.name for p in programs_in(tmp_path)) == ["1.program", "2.program"]
+
+
+def test_the_identity_holds_the_code_the_xla_flags_and_the_run(monkeypatch):
+    base = compilation.identity("pendulum", 0.01)
+    assert compilation.identity("pendulum", 0.01) == base
+    assert compilation.identity("pendulum", 0.02) != base
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
+    assert compilation.identity("pendulum", 0.01) != base
+
+
+def cli_run(out: Path, cache: Path, *args) -> dict:
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--problems", "pendulum", "--t-end", "1",
+         "--jobs", "1", "--no-report", "--compile-cache", str(cache), "--out", str(out), *args],
+        cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    with open(out / "runs.csv", newline="") as f:
+        return {row["integrator"]: row for row in csv.DictReader(f)}
+
+
+def test_programs_kept_by_one_invocation_run_in_the_next_identically(tmp_path):
+    # LAPACK (lobatto3ab2's Newton solves) from a program that was never lowered in the
+    # loading process; the kept file written once from a compilation and once from an
+    # executable that JAX's own cache served.
+    cache = tmp_path / "cache"
+    args = ("--integrators", "lobatto3ab2", "rattle", "--h", "0.05")
+    cold = cli_run(tmp_path / "cold", cache, *args)
+    kept = compilation.folder(cache) / "programs"
+    assert programs_in(kept)
+    warm = cli_run(tmp_path / "warm", cache, *args)
+    for method in ("lobatto3ab2", "rattle"):
+        assert cold[method]["status"] == warm[method]["status"] == "ok"
+        assert warm[method]["setup_cache"] == "warm"
+        assert warm[method]["q_final"] == cold[method]["q_final"]
+        assert warm[method]["max_pos_residual"] == cold[method]["max_pos_residual"]
+    for p in programs_in(kept):
+        p.unlink()
+    from_jax = cli_run(tmp_path / "from-jax", cache, *args)
+    assert programs_in(kept)
+    again = cli_run(tmp_path / "again", cache, *args)
+    for method in ("lobatto3ab2", "rattle"):
+        assert from_jax[method]["q_final"] == again[method]["q_final"] == cold[method]["q_final"]
+        assert again[method]["setup_cache"] == "warm"
+
+
+def test_with_the_cache_off_nothing_is_kept(tmp_path):
+    rows = cli_run(tmp_path / "off", Path("off"), "--integrators", "rattle", "--h", "0.05")
+    assert rows["rattle"]["setup_cache"] == "off"
