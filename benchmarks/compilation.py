@@ -62,7 +62,7 @@ from pathlib import Path
 import jax
 import jaxlib
 
-from linalg.compiled import KEPT_EVENT
+from linalg.compiled import KEPT_EVENT, keeping
 
 #: Environment variable naming the cache folder, or ``off``.
 ENV = "DRIFTBENCH_COMPILE_CACHE"
@@ -78,7 +78,7 @@ _lock = threading.Lock()
 _counts = {"/jax/compilation_cache/cache_hits": 0, "/jax/core/compile/backend_compile_duration": 0,
            KEPT_EVENT: 0}
 #: The packages whose files make up the code hash of :func:`identity`.
-CODE_PACKAGES = ("integrators", "problems", "linalg")
+CODE_PACKAGES = ("integrators", "problems", "linalg", "studies")
 #: The libraries whose versions :func:`identity` includes.
 LIBRARIES = ("jax", "jaxlib", "numpy", "scipy", "diffrax", "equinox", "lineax", "optimistix",
              "asdex", "scikit-sundae")
@@ -166,6 +166,32 @@ def _code_and_libraries() -> str:
         except metadata.PackageNotFoundError:
             versions[name] = None
     return json.dumps([digest.hexdigest(), versions, sys.version, platform.machine()])
+
+
+def kept(*parts):
+    """The scope (:func:`linalg.compiled.keeping`) in which programs are kept whole and
+    loaded under :func:`identity` of ``parts``, which with this project's code must
+    determine every program compiled in it; nothing is kept with the cache off."""
+    where = programs()
+    return keeping(where, identity(*parts) if where is not None else "")
+
+
+def kept_for(problem, integrator=None, *settings, platform: str = "cpu"):
+    """:func:`kept` for building the case of ``problem`` (a resolved
+    :class:`~problems.spec.ProblemSpec`), or for a run of it with ``integrator`` and
+    ``settings``: nothing is kept where a plug-in defines either (the code hash does not
+    cover it) or the run is not on the CPU (loading a GPU program was never tried here)."""
+    import integrators
+    import problems
+
+    own = (problems.REGISTRY[problem.name].__module__.startswith("problems.")
+           and (integrator is None
+                or integrators.REGISTRY[integrator.name][0].startswith("integrators.")))
+    if not own or platform != "cpu":
+        return keeping(None, "")
+    return kept(problem.name, problem.arguments,
+                None if integrator is None else [integrator.name, integrator.arguments],
+                *settings)
 
 
 def identity(*parts) -> str:

@@ -40,36 +40,15 @@ from benchmarks.plan import PlannedRun, jax_device, plan
 from benchmarks.records import (QUANTILES, Ending, Metrics, Record, RunSpec, Spread, Status,
                                 Timing, Work, provenance)
 from integrators.base import COUNTERS, Grid, Trajectory
-from linalg.compiled import keeping
 from problems import ensemble
-from problems.spec import IntegratorSpec, ProblemSpec
-
-
-def _own(problem: ProblemSpec, integrator: IntegratorSpec | None = None) -> bool:
-    # Whether the project's code defines the problem (and method): only then does the
-    # code hash of compilation.identity cover them, and may their programs be kept.
-    return (problems.REGISTRY[problem.name].__module__.startswith("problems.")
-            and (integrator is None
-                 or integrators.REGISTRY[integrator.name][0].startswith("integrators.")))
-
-
-def _kept(problem: ProblemSpec, integrator: IntegratorSpec | None = None, *settings):
-    """The scope in which the programs of a case or a run are kept whole
-    (:func:`linalg.compiled.keeping`), named by everything they are compiled from."""
-    # On the CPU only: loading a GPU program was never tried here.
-    if not _own(problem, integrator) or (settings and settings[-1] != "cpu"):
-        return keeping(None, "")
-    parts = [problem.name, problem.arguments,
-             None if integrator is None else [integrator.name, integrator.arguments],
-             *settings]
-    return keeping(compilation.programs(), compilation.identity(*parts))
+from problems.spec import ProblemSpec
 
 
 @functools.lru_cache(maxsize=8)
 def _case(problem: ProblemSpec):
     # Cases are immutable: the runs of a worker share them, and with them the compiled
     # functions keyed on their Mechanics (a step-size or tolerance sweep compiles once).
-    with _kept(problem):
+    with compilation.kept_for(problem):
         return problems.make(problem)
 
 
@@ -156,8 +135,9 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
         start = time.perf_counter()
         # Not the run key: it holds the code version, which every edit of any tracked file
         # changes; the identity hashes the code that compiles instead.
-        kept = _kept(run.problem, run.integrator, run.run.t_end, run.grid, run.run.lanes,
-                     run.run.seed, run.lanes, run.run.options, device.platform)
+        kept = compilation.kept_for(run.problem, run.integrator, run.run.t_end, run.grid,
+                                    run.run.lanes, run.run.seed, run.lanes, run.run.options,
+                                    platform=device.platform)
         with compilation.Watch() as compiled, jax.default_device(device), kept:
             solve = (integ.prepare(case, grid) if lanes is None else
                      integ.prepare_ensemble(case, grid, *lanes))

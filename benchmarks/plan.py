@@ -31,6 +31,7 @@ import jax
 
 import integrators
 import problems
+from benchmarks import compilation
 from benchmarks.audit import AuditError, audit, explain
 from benchmarks.records import InputError, Run, RunSpec, identity, one_line, run_key
 from problems.ensemble import MAX_LANES
@@ -278,7 +279,8 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
             if (problem, spec.t_end) not in cases:
                 if not allow_large:
                     problems.check_size(problem)
-                case = problems.make(problem)
+                with compilation.kept_for(problem):
+                    case = problems.make(problem)
                 # The library's own problems are verified by its tests; user code is
                 # checked here, once per problem spec, before it can spoil every run.
                 if problem not in audited and problems.origin(problem.name) != "built-in":

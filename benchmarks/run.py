@@ -42,19 +42,20 @@ import signal
 import sys
 from pathlib import Path
 
-import integrators
-import problems
-from benchmarks import compilation, suites
-from benchmarks.executors import load_plugins
-from benchmarks.plan import DEVICES, LANES_PER_CHUNK, expand
 from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, one_line
-from studies import STUDIES
+
+# Everything heavier (JAX, the integrators, the problems, the engines, the report) is
+# imported where it is used: multiprocessing imports this module again in every process it
+# spawns from the command line (the report's drawing processes), which would otherwise
+# import JAX and every integrator for nothing, about a second each.
 
 #: Exit status of an interrupted invocation.
 EXIT_INTERRUPTED = 130
 
 
 def parser() -> argparse.ArgumentParser:
+    from benchmarks.plan import DEVICES, LANES_PER_CHUNK
+
     p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
     p.add_argument("--problems", nargs="+", metavar="SPEC", help="problems, e.g. pendulum sps-ring:N=12")
@@ -99,6 +100,11 @@ def parser() -> argparse.ArgumentParser:
 
 
 def listing() -> str:
+    import integrators
+    import problems
+    from benchmarks import suites
+    from studies import STUDIES
+
     lines = ["problems (name: parameters with defaults [where it comes from]):"]
     for name in problems.names():
         params = ", ".join(f"{k}={v}" for k, v in problems.parameters(name).items())
@@ -122,18 +128,20 @@ def listing() -> str:
     return "\n".join(lines)
 
 
-#: Command-line numbers: option -> (test of one value, what each value must be); the same
-#: ranges as in suite files, and ``--jobs``.
-ARGUMENT_RANGES = {
-    **{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout", "repeats",
-                                           "ensemble", "seed", "lanes_per_chunk")},
-    "jobs": (lambda x: x >= 1, "at least 1"),
-}
+def argument_ranges() -> dict:
+    """Command-line numbers: option -> (test of one value, what each value must be); the
+    same ranges as in suite files, and ``--jobs``."""
+    from benchmarks import suites
+
+    return {**{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout",
+                                                    "repeats", "ensemble", "seed",
+                                                    "lanes_per_chunk")},
+            "jobs": (lambda x: x >= 1, "at least 1")}
 
 
 def check_arguments(args) -> None:
     """Refuse out-of-range numbers on the command line, naming the option."""
-    for name, (ok, must) in ARGUMENT_RANGES.items():
+    for name, (ok, must) in argument_ranges().items():
         value = getattr(args, name)
         for x in value if isinstance(value, list) else ([] if value is None else [value]):
             if not ok(x):
@@ -145,6 +153,10 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
     repeats, studies, default time limit, Dask cluster, user code to load) and the suite's
     accuracy targets for the report (empty: the report's defaults); loads ``--load``
     first, so that what it registers can be named."""
+    import problems
+    from benchmarks import suites
+    from benchmarks.plan import expand
+
     check_arguments(args)
     try:
         loads = [problems.load(source) for source in args.load]
@@ -204,6 +216,10 @@ def _interrupt(signum, frame):
 
 
 def main(argv=None) -> int:
+    import problems
+    from benchmarks import compilation
+    from benchmarks.executors import load_plugins
+
     args = parser().parse_args(argv)
     if args.list:
         try:

@@ -128,10 +128,7 @@ class Case:
                        reference=None)
 
 
-@partial(jax.jit, static_argnames="mech")
-def _residuals(q, v, t, *, mech: Mechanics):
-    # One compiled function: evaluated eagerly, the autodiff Jacobian in ``vel_residual``
-    # compiles each of its dozens of primitive operations on its own (seconds per case).
+def _residuals(mech: Mechanics, q, v, t):
     return (jnp.max(jnp.abs(mech.g(q, t)), initial=0.0),
             jnp.max(jnp.abs(mech.vel_residual(q, v, t)), initial=0.0))
 
@@ -139,8 +136,10 @@ def _residuals(q, v, t, *, mech: Mechanics):
 def residuals(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float) -> tuple[float, float]:
     """Max-norms of ``g(q, t)`` and ``G v + g_t``."""
     f64 = jnp.float64
-    pos, vel = _residuals(jnp.asarray(q, f64), jnp.asarray(v, f64), jnp.asarray(t, f64),
-                          mech=mech)
+    args = (jnp.asarray(q, f64), jnp.asarray(v, f64), jnp.asarray(t, f64))
+    # One compiled function: evaluated eagerly, the autodiff Jacobian in ``vel_residual``
+    # compiles each of its dozens of primitive operations on its own (seconds per case).
+    pos, vel = compile_lifted(partial(_residuals, mech), *args)(*args)
     return float(pos), float(vel)
 
 

@@ -32,6 +32,7 @@ import pandas as pd
 
 import integrators
 import problems
+from benchmarks import compilation
 from integrators import Grid
 
 PROBLEM = "sps-receiver"
@@ -51,7 +52,9 @@ def solve(key: str, h: float):
     case = problems.make(PROBLEM)
     steps = int(round((case.t_end - case.t0) / h))
     grid = Grid(case.t0, case.t_end, n_windows=steps, n_samples=steps + 1)
-    return case, integrators.make(key, h=h).prepare(case, grid)()
+    # Its programs are kept whole for the next process, as a suite's runs are.
+    with compilation.kept("study seed-sps", key, h):
+        return case, integrators.make(key, h=h).prepare(case, grid)()
 
 
 def verdict(runs: pd.DataFrame) -> str:
