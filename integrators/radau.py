@@ -27,6 +27,7 @@ from integrators.base import Failure, Grid, Integrator
 from integrators.ida import consistent_values, ggl_residual
 from integrators.loop import CACHE_SIZE, put
 from integrators.record import Recorder, batch_length
+from linalg.compiled import compile_lifted
 from linalg.dense import lu_factor, lu_solve
 from linalg.schur import KINDS
 from problems.case import Case
@@ -612,8 +613,9 @@ def compiled_chunk(state: LoopState, params: Params, mech: Mechanics, formulatio
     """:func:`run_chunk` compiled for this system and options (or the kept executable)."""
     key = (mech, formulation, nit, linear_solver)
     if key not in _CHUNKS:
-        _CHUNKS[key] = run_chunk.lower(state, params, mech=mech, formulation=formulation,
-                                       nit=nit, linear_solver=linear_solver).compile()
+        _CHUNKS[key] = compile_lifted(run_chunk, state, params, mech=mech,
+                                      formulation=formulation, nit=nit,
+                                      linear_solver=linear_solver)
         while len(_CHUNKS) > CACHE_SIZE:
             _CHUNKS.popitem(last=False)
     _CHUNKS.move_to_end(key)
@@ -797,7 +799,8 @@ class RadauIIA(Integrator):
             return refuse
         static = dict(mech=mech, formulation=self.formulation,
                       linear_solver=self.linear_solver)
-        state0 = initial_state(f64(y0), f64(yp0), f64(t0), params, **static)
+        args = (f64(y0), f64(yp0), f64(t0), params)
+        state0 = compile_lifted(initial_state, *args, **static)(*args)
         chunk = compiled_chunk(state0, params, nit=self.newton_max_iter, **static)
 
         def solve():

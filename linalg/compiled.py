@@ -116,6 +116,17 @@ class Lifted:
         """Bytes of the constants held as arguments."""
         return sum(v.nbytes for v in self._values)
 
+    @property
+    def flops(self) -> float | None:
+        """XLA's count of the program's floating-point operations, where it gives one.
+
+        Each loop body counts once (XLA does not know how often a while loop runs): for a
+        time loop, about one step with one Newton iteration and its recording.
+        """
+        cost = self._compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, list) and cost else cost
+        return float(cost["flops"]) if isinstance(cost, dict) and "flops" in cost else None
+
 
 class _Keeper:
     """The folder and identity of a :func:`keeping` scope, and the calls made in it."""

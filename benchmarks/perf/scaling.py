@@ -75,6 +75,13 @@ What each number is
         computes once is printed as the baseline.
     linear solver
         ``Trajectory.linear_solver``, what the method says ran.
+    Mflop
+        the fixed-step loop's floating-point operations as XLA counts them in the
+        compiled program (``compiled.cost_analysis()``), each loop body once, since XLA
+        does not know how often a while loop runs: about one step with one Newton
+        iteration and its recording. It says what a step's arithmetic is, not how much of
+        it ran; the per-body bar gives the flop ratio and the time per Newton iteration
+        ratio of rigid-chain and chain beside the time ratio.
 
 A point runs under a time limit (``--limit``, default :data:`LIMIT` s for the whole process)
 and an address-space cap (``--memory-limit``). A point that fails, runs out of time or out
@@ -185,6 +192,7 @@ class Point:
     max_energy: float | None = None
     linear_solver: str | None = None
     pattern_nnz: int | None = None
+    flops: float | None = None
 
 
 # --------------------------------------------------------------------------- one point
@@ -250,7 +258,8 @@ def point_main(argv: list[str]) -> int:
             cpu_per_step=statistics.median(cpus) / steps if steps else None,
             **{f"max_{k}": float(np.max(traj.windows[k])) if len(traj.windows[k]) else None
                for k in ("pos", "vel", "energy")},
-            linear_solver=traj.linear_solver, pattern_nnz=traj.pattern_nnz)
+            linear_solver=traj.linear_solver, pattern_nnz=traj.pattern_nnz,
+            flops=getattr(getattr(solve, "compiled", None), "flops", None))
         if spec.get("state"):
             np.save(spec["state"], np.concatenate([traj.q_final, traj.v_final]))
     except Exception as exc:  # recorded as the point's status, never fatal to the benchmark
@@ -414,6 +423,21 @@ def _ratio_bar(name: str, pair: tuple, labels: tuple[str, str], limit: float,
     return _verdict(name, wall <= limit, f"{wall:.3g}{unit} (by CPU time {cpu:.3g}{unit})")
 
 
+def arithmetic(num: Point | None, den: Point | None) -> str:
+    """What a time ratio of two finished points of one N is made of: their ratio of
+    floating-point operations (XLA's count of each compiled loop, each loop body once: about
+    a step with one Newton iteration) and of time per Newton iteration; empty where either
+    is unknown."""
+    if num is None or den is None or not (num.flops and den.flops and num.newton_per_step
+                                           and den.newton_per_step):
+        return ""
+    flops = num.flops / den.flops
+    per_iteration = (num.wall_per_step / num.newton_per_step) / (den.wall_per_step
+                                                                 / den.newton_per_step)
+    return (f"; {flops:.3g}x the floating-point operations per pass through the loop "
+            f"(XLA's count), {per_iteration:.3g}x the time per Newton iteration")
+
+
 def _memory_bar(name: str, point: Point | None, label: str, limit: int) -> dict:
     """A bar on a finished point's peak resident set."""
     if point is None or point.status != "ok":
@@ -455,13 +479,14 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
         _find(points, "chain", "rattle", RATTLE_MEMORY_SIZE), f"rattle at N={RATTLE_MEMORY_SIZE}",
         RATTLE_MEMORY))
     out.extend(ring_bars(points, settings))
-    out.append(_ratio_bar(
+    rigid = (_find(points, "rigid-chain", "rattle", RIGID_SIZE),
+             _find(points, "chain", "rattle", RIGID_SIZE))
+    bar = _ratio_bar(
         f"rattle time per body on rigid-chain:N={RIGID_SIZE} <= {RIGID_PER_BODY:g}x its time "
-        f"per link on chain:N={RIGID_SIZE}",
-        (_find(points, "rigid-chain", "rattle", RIGID_SIZE),
-         _find(points, "chain", "rattle", RIGID_SIZE)),
+        f"per link on chain:N={RIGID_SIZE}", rigid,
         (f"rattle on rigid-chain at N={RIGID_SIZE}", f"rattle on chain at N={RIGID_SIZE}"),
-        RIGID_PER_BODY, "x"))
+        RIGID_PER_BODY, "x")
+    out.append({**bar, "value": bar["value"] + arithmetic(*rigid)})
     for family in settings["families"] if "rigid-chain" in settings["problems"] else ():
         out.append(_memory_bar(
             f"{family} on rigid-chain:N={RIGID_SIZE}: peak memory < {RIGID_MEMORY / 2**30:g} GiB",
@@ -519,13 +544,14 @@ def print_table(points: list[Point], problem: str) -> None:
     print(f"\n{problem}")
     print(f"  {'N':>6} {'family':<14} {'status':<13} {'steps':>5} {'us/step':>9} "
           f"{'cpu us':>9} {'x C':>7} {'Newton':>6} {'peak MiB':>8} {'set-up s':>8} "
-          f"{'max|g|':>8}  linear solver")
+          f"{'max|g|':>8} {'Mflop':>7}  linear solver")
     for p in (p for p in points if p.problem == problem):
         rss = "-" if p.peak_rss is None else f"{p.peak_rss / 2**20:.0f}"
         print(f"  {p.n:>6} {p.family:<14} {p.status:<13} {_g(p.steps, 'd'):>5} "
               f"{_us(p.wall_per_step):>9} {_us(p.cpu_per_step):>9} {_g(p.ratio_c):>7} "
               f"{_g(p.newton_per_step, '.2f'):>6} {rss:>8} {_g(p.setup_s, '.3g'):>8} "
-              f"{_g(p.max_pos, '.1e'):>8}  {p.linear_solver or '-'}")
+              f"{_g(p.max_pos, '.1e'):>8} {_g(p.flops and p.flops / 1e6, '.3g'):>7}  "
+              f"{p.linear_solver or '-'}")
         if p.status != "ok" and p.message:
             print(f"  {'':>6} {'':<14} {p.message[:160]}")
 
