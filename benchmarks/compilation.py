@@ -21,14 +21,15 @@ Programs kept whole
 -------------------
 JAX needs a program traced and lowered to compute its key, which is most of a warm
 set-up. The main programs of a run (the time loop, the start, the recorder's measures,
-the case's projection: everything :func:`linalg.compiled.compile_lifted` compiles) are
-also kept whole, serialized executables that load without tracing, in the folder's
+the case's checks: everything :func:`linalg.compiled.compile_lifted` compiles) are also
+kept whole, serialized executables that load without tracing, in the folder's
 ``programs/`` (:func:`programs`; bound :data:`linalg.compiled.KEPT_MAX_BYTES`). They are
 named by :func:`identity`: the hash of this project's code (every file of
-:data:`CODE_PACKAGES`), the versions of :data:`LIBRARIES`, ``XLA_FLAGS``, the run's
-resolved problem, method, settings and device, and then per program its call site,
-function and argument shapes (:mod:`linalg.compiled`). Only runs of the project's own
-problems and methods keep programs: a plug-in's code is not in the hash.
+:data:`CODE_PACKAGES`), the versions of :data:`LIBRARIES`, the processor's features,
+``XLA_FLAGS``, the run's resolved problem, method, settings and device, and then per
+program its call site, function, argument shapes and order (:mod:`linalg.compiled`). Only
+runs of the project's own problems and methods on the CPU keep programs
+(:func:`kept_for`): a plug-in's code is not in the hash.
 
 Bound and clearing
 ------------------
@@ -165,7 +166,19 @@ def _code_and_libraries() -> str:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             versions[name] = None
-    return json.dumps([digest.hexdigest(), versions, sys.version, platform.machine()])
+    return json.dumps([digest.hexdigest(), versions, sys.version, platform.machine(),
+                       _cpu_features()])
+
+
+def _cpu_features() -> str:
+    # XLA:CPU compiles for the features of the processor it runs on; a cache folder shared by
+    # machines of other processors (a network home) must not hand one's programs to another.
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith("flags")), "")
+    except OSError:
+        flags = ""
+    return hashlib.sha256((platform.processor() + flags).encode()).hexdigest()[:16]
 
 
 def kept(*parts):
@@ -196,8 +209,9 @@ def kept_for(problem, integrator=None, *settings, platform: str = "cpu"):
 
 def identity(*parts) -> str:
     """The name of what a scope of :func:`linalg.compiled.keeping` compiles: this code's
-    hash, the library versions, ``XLA_FLAGS`` (read now: it is fixed once JAX has
-    started) and ``parts`` (JSON; the run's resolved problem, method and settings)."""
+    hash, the library versions, the processor's features, ``XLA_FLAGS`` (read now: it is
+    fixed once JAX has started) and ``parts`` (JSON; the run's resolved problem, method and
+    settings)."""
     text = json.dumps([_code_and_libraries(), os.environ.get("XLA_FLAGS", ""), parts],
                       default=repr, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
