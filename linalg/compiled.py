@@ -136,7 +136,10 @@ class _Keeper:
         self.calls: dict[str, int] = {}
 
     def path(self, fn: Callable, args: tuple, static: dict) -> Path:
-        caller = sys._getframe(2)
+        """The file of the program that :func:`compile_lifted` (this method's caller) is
+        asked for: named by the scope's identity, the call site, the function, the shapes
+        and plain static arguments, and how many such calls the scope made before."""
+        caller = sys._getframe(2)  # compile_lifted's caller
         site = f"{Path(caller.f_code.co_filename).name}:{caller.f_lineno}"
         inner = getattr(fn, "func", fn)
         name = f"{getattr(inner, '__module__', '')}.{getattr(inner, '__qualname__', inner)}"
