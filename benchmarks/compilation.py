@@ -63,7 +63,7 @@ from pathlib import Path
 import jax
 import jaxlib
 
-from linalg.compiled import KEPT_EVENT, keeping
+from linalg.compiled import KEPT_EVENT, KEPT_MAX_BYTES, keeping
 
 #: Environment variable naming the cache folder, or ``off``.
 ENV = "DRIFTBENCH_COMPILE_CACHE"
@@ -280,8 +280,9 @@ def main(argv=None) -> int:
         print(f"cleared {base}")
         return 0
     entries, nbytes = size(base) if base.exists() else (0, 0)
-    print(f"{base}: {entries} entries, {nbytes / 1e6:.1f} MB (bound {MAX_BYTES / 1e9:.1f} GB "
-          f"per jax version); this version's folder: {folder(base).name}")
+    print(f"{base}: {entries} entries, {nbytes / 1e6:.1f} MB (bounds per jax version: "
+          f"{MAX_BYTES / 1e9:.1f} GB of JAX's executables, {KEPT_MAX_BYTES / 1e9:.1f} GB of "
+          f"kept programs); this version's folder: {folder(base).name}")
     return 0
 
 
