@@ -48,7 +48,6 @@ compiled it already, ``off`` without a cache).
 
 from __future__ import annotations
 
-import argparse
 import functools
 import hashlib
 import json
@@ -57,12 +56,12 @@ import platform
 import shutil
 import sys
 import threading
-from importlib import metadata
 from pathlib import Path
 
 import jax
 import jaxlib
 
+from benchmarks.records import versions
 from linalg.compiled import KEPT_EVENT, KEPT_MAX_BYTES, keeping
 
 #: Environment variable naming the cache folder, or ``off``.
@@ -160,13 +159,7 @@ def _code_and_libraries() -> str:
             if path.is_file() and "__pycache__" not in path.parts:
                 digest.update(str(path.relative_to(base)).encode())
                 digest.update(path.read_bytes())
-    versions = {}
-    for name in LIBRARIES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    return json.dumps([digest.hexdigest(), versions, sys.version, platform.machine(),
+    return json.dumps([digest.hexdigest(), versions(LIBRARIES), sys.version, platform.machine(),
                        _cpu_features()])
 
 

@@ -396,18 +396,23 @@ def _git(*args) -> bytes:
         return b""
 
 
+def versions(names) -> dict[str, str | None]:
+    """The installed version of each distribution in ``names`` (``None``: not installed)."""
+    found = {}
+    for name in names:
+        try:
+            found[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            found[name] = None
+    return found
+
+
 @functools.lru_cache(maxsize=1)
 def _machine() -> dict[str, str]:
-    versions = {}
-    for name in PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
     machine = " ".join(x for x in (platform.node(), platform.system(), platform.machine(),
                                    f"{os.cpu_count()} CPUs") if x)
     return {"machine": machine, "python": platform.python_version(),
-            "versions": json.dumps(versions)}
+            "versions": json.dumps(versions(PACKAGES))}
 
 
 def provenance() -> dict[str, object]:
