@@ -57,7 +57,8 @@ class PlannedRun:
     one is ``run.t_end``); ``grid`` the :class:`~integrators.base.Grid` options;
     ``timeout`` the time limit in seconds (``None``: no limit); ``run`` the record's
     :class:`~benchmarks.records.Run` part, ``run_key`` included; ``origin`` where the run
-    was asked for. For an ensemble, ``device`` is where its loop runs (:data:`DEVICES`),
+    was asked for. For an ensemble, ``device`` is where its loop runs (``cpu`` or ``gpu``,
+    :func:`resolve_device`),
     ``chunks`` the lane ranges it runs in (:func:`lane_ranges`), and ``lanes`` the one
     range a task executes (``None``: every lane).
     """
@@ -111,9 +112,19 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     return runs
 
 
-#: Where an ensemble's compiled loop runs: ``auto`` (a GPU when JAX sees one, else the
-#: CPU), ``cpu`` or ``gpu`` (float64 either way). Single runs run on the CPU.
+#: Where an ensemble's compiled loop runs: ``auto`` (a GPU when JAX sees one and the
+#: ensemble has at least :data:`GPU_MIN_LANES` lanes, else the CPU), ``cpu`` or ``gpu``
+#: (float64 either way). Single runs run on the CPU.
 DEVICES = ("auto", "cpu", "gpu")
+
+#: Fewest lanes for which ``auto`` runs an ensemble on a GPU. A GPU step costs about the
+#: same for a thousand lanes as for one, and many small ensembles sharing one GPU queue
+#: for it: the ``ensemble`` suite (64 and 256 lanes) on one H200 with 16 workers took 3 to
+#: 23 times the solve time of this repository's 2-core CPU (genalpha 5.6 s against 0.30 s,
+#: rattle 1.7 s against 0.18 s). From 1024 lanes on the GPU was ahead of one CPU core for
+#: every method measured (``benchmarks/perf/ensemble.py``: rattle 1.55e7 lane-steps/s
+#: against 7.5e6, lobatto3ab3 1.3e6 against about 1e4).
+GPU_MIN_LANES = 1024
 
 #: Most lanes per chunk of an ensemble (:func:`lane_ranges`) unless a run sets its own. On
 #: one core lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
@@ -153,6 +164,14 @@ def jax_device(name: str) -> jax.Device | None:
     if name == "cpu" or not gpus:
         return None if name == "gpu" else jax.devices("cpu")[0]
     return gpus[0]
+
+
+def resolve_device(device: str, lanes: int) -> str:
+    """``cpu`` or ``gpu``: where an ensemble of ``lanes`` lanes asked to run on ``device``
+    (:data:`DEVICES`) runs in this process's view (``auto``: :data:`GPU_MIN_LANES`)."""
+    if device != "auto":
+        return device
+    return "gpu" if lanes >= GPU_MIN_LANES and jax_device("gpu") is not None else "cpu"
 
 
 def check_device(device: str, where: str) -> None:
@@ -292,9 +311,13 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
             integ = integrators.make(method, h=spec.h, rtol=spec.rtol, atol=spec.atol)
             run_grid, chunks, device = grid, (), spec.device or "auto"
             if spec.lanes is not None:
-                per_chunk = spec.lanes_per_chunk or LANES_PER_CHUNK
-                check_ensemble(spec.lanes, spec.seed, spec.label(), per_chunk)
+                check_ensemble(spec.lanes, spec.seed, spec.label(),
+                               spec.lanes_per_chunk or LANES_PER_CHUNK)
                 check_device(device, spec.label())
+                device = resolve_device(device, spec.lanes)
+                # One GPU runs an ensemble best as one batch: no chunks unless asked for.
+                per_chunk = spec.lanes_per_chunk or (MAX_LANES if device == "gpu"
+                                                     else LANES_PER_CHUNK)
                 run_grid = {**grid, **{k: min(v, grid.get(k, v))
                                        for k, v in ENSEMBLE_GRID.items()}}
                 chunks = lane_ranges(spec.lanes, per_chunk)

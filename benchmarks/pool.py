@@ -140,9 +140,8 @@ def one_xla_thread() -> None:
 
 def thread_environment() -> dict[str, str]:
     """The environment variables a worker starts with (thread limits added to ours,
-    :data:`GPU_ENV`, :data:`integrators.loop.KERNEL_FLAG`, under which XLA compiles our
-    time loops into one kernel, and :data:`integrators.loop.COMPILE_FLAG`, which makes
-    compiling cheaper)."""
+    :data:`GPU_ENV`, and XLA's options, :func:`integrators.loop.xla_options`: time loops
+    as one kernel on the CPU, cheaper compiling, while loops in CUDA graphs on a GPU)."""
     flags = kernel_environment()["XLA_FLAGS"]
     return {**THREAD_ENV, **GPU_ENV, "XLA_FLAGS": f"{flags} {XLA_THREAD_FLAGS}".strip()}
 

@@ -54,7 +54,7 @@ EXIT_INTERRUPTED = 130
 
 
 def parser() -> argparse.ArgumentParser:
-    from benchmarks.plan import DEVICES, LANES_PER_CHUNK
+    from benchmarks.plan import DEVICES, GPU_MIN_LANES, LANES_PER_CHUNK
 
     p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
@@ -69,12 +69,14 @@ def parser() -> argparse.ArgumentParser:
                         "its own), in one compiled loop where the method allows")
     p.add_argument("--seed", type=int, help="seed of the ensemble's initial states (default 0)")
     p.add_argument("--device", choices=DEVICES,
-                   help="where an ensemble's loop runs: auto (a GPU when JAX sees one, else "
-                        "the CPU; the default), cpu or gpu; single runs run on the CPU")
+                   help=f"where an ensemble's loop runs: auto (a GPU when JAX sees one and the "
+                        f"ensemble has {GPU_MIN_LANES} lanes or more, else the CPU; the "
+                        f"default), cpu or gpu; on a GPU an ensemble is one chunk unless "
+                        f"--lanes-per-chunk says otherwise; single runs run on the CPU")
     p.add_argument("--lanes-per-chunk", type=int, metavar="L",
                    help=f"split an ensemble into chunks of at most L lanes (nearly equal, "
                         f"never one lane alone), each a task of its own on the workers "
-                        f"(default {LANES_PER_CHUNK})")
+                        f"(default {LANES_PER_CHUNK} on the CPU)")
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder (default: results/)")
     p.add_argument("--repeats", type=int, help="timed solves of each run at least (autorange; the median is reported)")
     p.add_argument("--jobs", type=int, help="runs side by side (default: the usable cores)")

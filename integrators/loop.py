@@ -75,6 +75,22 @@ KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_thresho
 #: with the same kernels' speed (rattle on sps-receiver against C: 0.85 against 0.74 of
 #: C per CPU second in one noisy pair of runs, the same Newton iterations and residuals).
 COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+#: The last jaxlib release whose XLA knows :data:`COMPILE_FLAG`: jaxlib 0.11 removed the
+#: option, and XLA aborts a process whose ``XLA_FLAGS`` names an option it does not know
+#: ("Unknown flag in XLA_FLAGS", seen with jaxlib 0.11.2).
+COMPILE_FLAG_UNTIL = (0, 10)
+
+#: XLA:GPU options: record while loops and conditionals into CUDA graphs (command buffers)
+#: with their predicates evaluated on the device, so that a Newton loop's test does not go
+#: back to the host at every iteration. Measured on one H200 (JAX 0.11.2, 1e4 steps of
+#: ``h = 0.01``, ``benchmarks/perf/ensemble.py``): rattle on the pendulum 5.6e6 -> 1.55e7
+#: lane-steps/s at 1024 lanes and 5.4e7 -> 1.26e8 at 16384, its 256 receiver lanes still
+#: within 8.1e-13 of single runs on the CPU; lobatto3ab3 and the chain's dense solves not
+#: faster (1.33e6 and 1.30e6 lane-steps/s at 1024 lanes; why was not examined). XLA:CPU
+#: ignores these options.
+COMMAND_BUFFER_FLAGS = ("--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL",
+                        "--xla_gpu_graph_min_graph_size=1")
+
 
 #: Compiled loops kept for reuse (each holds its executable; a sweep needs one).
 CACHE_SIZE = 8
@@ -86,16 +102,25 @@ WORK = tuple(key for key in COUNTERS if key != "n_steps")
 Step = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, dict]]
 
 
+def xla_options(kernel: bool = True) -> tuple[str, ...]:
+    """The XLA options our processes start with: :data:`KERNEL_FLAG` (with ``kernel``),
+    :data:`COMPILE_FLAG` where the installed XLA knows it (:data:`COMPILE_FLAG_UNTIL`), and
+    :data:`COMMAND_BUFFER_FLAGS`."""
+    from jaxlib.version import __version_info__ as version
+    known = tuple(version[:2]) <= COMPILE_FLAG_UNTIL
+    return ((KERNEL_FLAG,) * kernel + (COMPILE_FLAG,) * known + COMMAND_BUFFER_FLAGS)
+
+
 def kernel_environment(environ: dict[str, str] | None = None,
-                       options: tuple[str, ...] = (KERNEL_FLAG, COMPILE_FLAG)) -> dict[str, str]:
+                       options: tuple[str, ...] | None = None) -> dict[str, str]:
     """``XLA_FLAGS`` of ``environ`` (default: this process's) with ``options`` added
-    (default :data:`KERNEL_FLAG` and :data:`COMPILE_FLAG`).
+    (default :func:`xla_options`).
 
     Returns a one-entry dict to merge into the environment of a process that is yet to
     start, or into ``os.environ`` before this process first uses JAX.
     """
     flags = (os.environ if environ is None else environ).get("XLA_FLAGS", "")
-    for option in options:
+    for option in xla_options() if options is None else options:
         if option not in flags.split():
             flags = f"{flags} {option}".strip()
     return {"XLA_FLAGS": flags}

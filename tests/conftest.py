@@ -1,6 +1,6 @@
 """What every test shares: float64 JAX, set once before any test module builds an array;
-the persistent compilation cache; XLA's compile option
-(:data:`integrators.loop.COMPILE_FLAG`); one BLAS thread
+the persistent compilation cache; XLA's options but the one-kernel flag
+(:func:`integrators.loop.xla_options`); one BLAS thread
 (:func:`benchmarks.pool.one_blas_thread`) and one XLA intra-op thread
 (:func:`benchmarks.pool.one_xla_thread`);
 and the ``slow`` marker's meaning.
@@ -22,12 +22,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from benchmarks import compilation, pool  # noqa: E402  (after float64 is set)
-from integrators.loop import COMPILE_FLAG, kernel_environment  # noqa: E402
+from integrators.loop import kernel_environment, xla_options  # noqa: E402
 
 # XLA reads its flags when JAX starts its CPU client, at the first computation: the tests
 # compile as the suite's workers do (without the one-kernel flag, which only changes how
 # the time loops run), which takes a third less time to compile.
-os.environ.update(kernel_environment(options=(COMPILE_FLAG,)))
+os.environ.update(kernel_environment(options=xla_options(kernel=False)))
 compilation.enable()
 # One BLAS thread per test process, as in the suite's workers: two test workers on two
 # cores would otherwise each spin a second OpenBLAS thread in every dense solve.

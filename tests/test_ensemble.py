@@ -14,7 +14,8 @@ import integrators
 import problems
 from benchmarks import run as cli
 from benchmarks.execute import execute, merge
-from benchmarks.plan import ENSEMBLE_GRID, jax_device, lane_ranges, plan
+from benchmarks import plan as planning
+from benchmarks.plan import ENSEMBLE_GRID, GPU_MIN_LANES, jax_device, lane_ranges, plan
 from benchmarks.records import ACCURACY_COLUMNS, RunSpec
 from benchmarks.store import load_lanes, load_runs
 from integrators.base import Grid
@@ -252,6 +253,20 @@ def test_device_auto_runs_on_the_cpu_without_a_gpu(tmp_path):
     spec = RunSpec("pendulum", "rattle", h=0.1, t_end=1.0, lanes=3, seed=0, device="auto")
     record = execute(plan([spec], "test")[0], repeats=1)
     assert record.ending.status == "ok" and record.work.device == "cpu"
+
+
+def test_device_auto_takes_a_gpu_only_for_large_ensembles_and_then_one_chunk(monkeypatch):
+    # Plan as if JAX saw a GPU: nothing runs, only where the runs would go.
+    cpu = jax_device("cpu")
+    monkeypatch.setattr(planning, "jax_device", lambda name: cpu)
+    specs = [RunSpec("pendulum", "rattle", h=0.1, t_end=1.0, lanes=k, seed=0, device=device,
+                     lanes_per_chunk=per_chunk)
+             for k, device, per_chunk in [(GPU_MIN_LANES - 1, "auto", None),
+                                          (GPU_MIN_LANES, "auto", None),
+                                          (GPU_MIN_LANES, "auto", 512),
+                                          (64, "gpu", None), (GPU_MIN_LANES, "cpu", None)]]
+    got = [(run.device, len(run.chunks)) for run in plan(specs, "test")]
+    assert got == [("cpu", 2), ("gpu", 1), ("gpu", 2), ("gpu", 1), ("cpu", 2)]
 
 
 @pytest.mark.skipif(jax_device("gpu") is not None, reason="a GPU is present")
