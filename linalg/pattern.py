@@ -18,7 +18,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from linalg.compiled import device_index, give_back_heap
+from linalg.compiled import compile_lifted, device_index, give_back_heap
+
+#: Entries of the directions that :meth:`SparseJacobian.values` differentiates along at once.
+BATCH_ENTRIES = 1 << 21
 
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
 #: the dense border of the banded solver.
@@ -64,15 +67,23 @@ class SparseJacobian:
         ``f(x) -> (m,)``, JAX-traceable.
     x : array
         A point of the right shape (the pattern is structural, not taken from values).
+    pattern : (rows, cols, (m, n)), optional
+        The pattern, or a structural superset of it, where the caller knows one: tracing
+        ``f`` holds a Python set per element of every intermediate array, which for a large
+        system is more memory than anything else (see :meth:`agrees` to check it).
     """
 
-    def __init__(self, f: Callable[[jax.Array], jax.Array], x: jax.Array):
-        pattern = traced_sparsity(asdex.jacobian_sparsity, f, x)
-        self.shape = (pattern.m, pattern.n)
-        self.rows = np.asarray(pattern.rows, dtype=np.int64)
-        self.cols = np.asarray(pattern.cols, dtype=np.int64)
-        self.nnz = len(self.rows)
+    def __init__(self, f: Callable[[jax.Array], jax.Array], x: jax.Array,
+                 pattern: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None):
+        if pattern is None:
+            traced = traced_sparsity(asdex.jacobian_sparsity, f, x)
+            pattern = (traced.rows, traced.cols, (traced.m, traced.n))
+        rows, cols, self.shape = pattern
         m, n = self.shape
+        # Sorted by row, then column, and without repeats.
+        flat = np.unique(np.asarray(rows, dtype=np.int64) * n + np.asarray(cols, dtype=np.int64))
+        self.rows, self.cols = flat // n, flat % n
+        self.nnz = len(self.rows)
         row_count = np.bincount(self.rows, minlength=m)
         col_count = np.bincount(self.cols, minlength=n)
         dense_rows = row_count > max(BORDER_MIN, 4 * np.median(row_count))
@@ -104,6 +115,24 @@ class SparseJacobian:
         self.from_rows = jnp.asarray(from_rows)
         self.f = f
 
+    def agrees(self, x: jax.Array, entries: np.ndarray, seed: int = 0) -> bool:
+        """Whether ``J(x) w``, assembled from ``entries`` (:meth:`values` at ``x``, in the
+        order of ``rows``, ``cols``), equals the Jacobian-vector product of ``f`` along a
+        random ``w`` to round-off.
+
+        A pattern that misses a structural entry fails this at a random ``x`` (where the
+        entry is almost surely nonzero); a non-finite product counts as disagreement.
+        """
+        w = np.random.default_rng(seed).standard_normal(self.shape[1])
+        exact = np.asarray(compile_lifted(lambda x, w: jax.jvp(self.f, (x,), (w,))[1],
+                                          x, jnp.asarray(w))(x, jnp.asarray(w)))
+        terms = np.asarray(entries) * w[self.cols]
+        assembled = np.bincount(self.rows, terms, minlength=self.shape[0])
+        scale = np.bincount(self.rows, np.abs(terms), minlength=self.shape[0])
+        finite = np.all(np.isfinite(exact)) and np.all(np.isfinite(assembled))
+        return bool(finite and np.all(np.abs(assembled - exact)
+                                      <= 1e-10 * scale + 1e-14 * np.max(scale, initial=0.0)))
+
     def values(self, x: jax.Array, f: Callable[[jax.Array], jax.Array] | None = None) -> jax.Array:
         """The Jacobian's entries at ``x``, in the order of ``rows``, ``cols``.
 
@@ -112,11 +141,16 @@ class SparseJacobian:
         """
         f = self.f if f is None else f
         directions = jnp.concatenate([self.seeds, jnp.eye(self.shape[1])[self.dense_cols]])
-        forward = jax.vmap(lambda d: jax.jvp(f, (x,), (d,))[1])(directions).T
+        # A few directions at a time: all of them at once hold every intermediate of f that
+        # many times (26 directions on rigid-chain:N=16384: about 1 GB of temporaries).
+        batch = max(1, BATCH_ENTRIES // max(self.shape))
+        forward = jax.lax.map(lambda d: jax.jvp(f, (x,), (d,))[1], directions,
+                              batch_size=batch).T
         values = gather(forward.ravel(), self.forward_index)
         if len(self.dense_rows):
             pullback = jax.vjp(f, x)[1]
-            reverse = jax.vmap(lambda e: pullback(e)[0])(jnp.eye(self.shape[0])[self.dense_rows])
+            reverse = jax.lax.map(lambda e: pullback(e)[0],
+                                  jnp.eye(self.shape[0])[self.dense_rows], batch_size=batch)
             values = jnp.where(self.from_rows, gather(reverse.ravel(), self.reverse_index),
                                values)
         return values

@@ -326,6 +326,68 @@ class Mechanics:
         sparsity = self.G_coloring.sparsity
         return np.asarray(sparsity.rows), np.asarray(sparsity.cols)
 
+    @cached_property
+    def curvature_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns of the Hessian pattern of ``sum_i g_i(q, t)`` in ``q``: what the
+        derivatives of ``G(q)^T lam`` in ``q`` can touch, for any ``lam`` (structural,
+        traced at ``q = 0``, ``t = 0``)."""
+        pattern = traced_sparsity(asdex.hessian_sparsity,
+                                  lambda q: jnp.sum(self.g(q, jnp.asarray(0.0))),
+                                  jnp.zeros(self.n))
+        return np.asarray(pattern.rows, dtype=np.int64), np.asarray(pattern.cols, dtype=np.int64)
+
+    def mass_pattern(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Rows and columns that ``M(q)`` can fill: its diagonal, the entries of a constant
+        mass, or the blocks of a block-diagonal one (:attr:`mass_blocks`); ``None`` for a
+        mass with no known structure."""
+        if self.mass_diagonal is not None:
+            diagonal = np.arange(self.n, dtype=np.int64)
+            return diagonal, diagonal
+        if self.mass_matrix is not None:
+            rows, cols = self.mass_matrix.nonzero()
+            return rows.astype(np.int64), cols.astype(np.int64)
+        blocks = self.mass_blocks
+        if blocks is None:
+            return None
+        members = blocks.members
+        keep = members >= 0
+        return np.repeat(np.arange(self.n, dtype=np.int64), blocks.size)[keep.ravel()], \
+            members[keep]
+
+    def dynamics_pattern(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A structural superset of the pattern of the ``n x 2n`` Jacobian of
+        ``M(q) a - force(t, q, v)`` in ``(q, v)``, for any ``a``, found without tracing the
+        force (``None`` where that cannot be done: a varying mass with no block structure).
+
+        ``-grad U`` contributes the Hessian pattern of ``U`` and the applied forces their
+        Jacobian pattern, both traced. A varying block-diagonal mass contributes its blocks,
+        in the ``q`` and the ``v`` columns: ``M(q) a`` and the quadratic-velocity term
+        ``c(q, v)`` (:meth:`force`) are derivatives of ``T``, and an entry of their Jacobian
+        is structurally nonzero only where the matching second derivative of ``T`` is
+        (a function whose derivative is not identically zero is not identically zero), so
+        within the blocks of ``d^2 T / dv^2`` as long as each block of ``M`` depends on its
+        own coordinates only. That last condition is not checked here: the caller checks
+        the Jacobian it assembles (:meth:`linalg.pattern.SparseJacobian.agrees`).
+        """
+        n = self.n
+        parts = []
+        if not self.constant_mass:
+            mass = self.mass_pattern()
+            if mass is None:
+                return None
+            parts += [mass, (mass[0], mass[1] + n)]
+        if self._potential is not None:
+            hessian = traced_sparsity(asdex.hessian_sparsity, self._potential, jnp.zeros(n))
+            parts.append((np.asarray(hessian.rows), np.asarray(hessian.cols)))
+        if self._forces is not None:
+            jacobian = traced_sparsity(
+                asdex.jacobian_sparsity,
+                lambda x: self._forces(jnp.asarray(0.0), x[:n], x[n:]), jnp.zeros(2 * n))
+            parts.append((np.asarray(jacobian.rows), np.asarray(jacobian.cols)))
+        empty = np.zeros(0, dtype=np.int64)
+        return (np.concatenate([np.asarray(r, dtype=np.int64) for r, _ in parts] + [empty]),
+                np.concatenate([np.asarray(c, dtype=np.int64) for _, c in parts] + [empty]))
+
     def G_values(self, q: Array, t: Array) -> Array:
         """The entries of ``G(q, t)`` in the order of :attr:`G_coloring` (compressed autodiff)."""
         coloring = self.G_coloring

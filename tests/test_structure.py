@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import problems
-from integrators.ida import FORMULATIONS, consistent_values
+from integrators.ida import FORMULATIONS, consistent_values, iteration_pattern
 from problems.mechanics import System
 from linalg.blocks import Blocks
 from linalg.pattern import SparseJacobian
@@ -183,6 +183,40 @@ def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form):
     S = np.zeros_like(J)
     S[jac.rows, jac.cols] = np.asarray(jax.jit(jac.values)(y))
     assert np.max(np.abs(J - S)) <= 1e-13 * max(1.0, np.max(np.abs(J)))
+
+
+@pytest.mark.parametrize("spec", ["four-bar", "rigid-chain:N=4", "sps-ring:N=16"])
+@pytest.mark.parametrize("form", sorted(FORMULATIONS))
+def test_assembled_iteration_pattern_holds_the_traced_one_and_is_checked(spec, form):
+    # The pattern IDA's sparse path assembles from the system's structure, without tracing
+    # the residual, holds every entry the traced one has and few more; the random-point
+    # check accepts it, and rejects a pattern that lacks one entry.
+    mech = problems.make(spec).mech
+    F = FORMULATIONS[form].residual(mech)
+    size = 2 * mech.n + FORMULATIONS[form].multiplier_blocks * mech.m
+    y = jnp.zeros(size)
+
+    def f(z):
+        return F(jnp.asarray(0.0), z, z - y)
+
+    traced = SparseJacobian(f, y)
+    rows, cols, shape = iteration_pattern(mech, form)
+    assembled = SparseJacobian(f, y, (rows, cols, shape))
+    got = set(zip(assembled.rows.tolist(), assembled.cols.tolist()))
+    assert set(zip(traced.rows.tolist(), traced.cols.tolist())) <= got
+    assert assembled.nnz <= 1.1 * traced.nnz
+    point = jnp.asarray(np.random.default_rng(5).standard_normal(size))
+    assert assembled.agrees(point, np.asarray(jax.jit(assembled.values)(point)))
+    J = np.abs(np.asarray(jax.jacfwd(f)(point)))
+    drop = np.argmax(J[assembled.rows, assembled.cols])
+    keep = np.arange(assembled.nnz) != drop
+    lacking = SparseJacobian(f, y, (assembled.rows[keep], assembled.cols[keep], shape))
+    assert not lacking.agrees(point, np.asarray(jax.jit(lacking.values)(point)))
+
+
+def test_no_assembled_pattern_for_a_mass_without_structure():
+    # andrews' mass is a dense function of q: its pattern is traced from the residual.
+    assert iteration_pattern(problems.make("andrews").mech, "ggl") is None
 
 
 def redundant_chain():

@@ -457,7 +457,7 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
             (f"rattle at N={n}", f"C at N={n}"), RATIO_BAR))
     lo, hi = GROWTH_SIZES
     for problem in settings["problems"]:
-        for family in FAMILIES:
+        for family in settings.get("families", FAMILIES):
             per = " per internal step" if family == "ida-ggl" else ""
             out.append(_ratio_bar(
                 f"{family} on {problem}: time{per} N={lo} -> {hi} grows <= {GROWTH_BAR:g}x",
