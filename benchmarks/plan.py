@@ -119,7 +119,7 @@ DEVICES = ("auto", "cpu", "gpu")
 
 #: Fewest lanes for which ``auto`` runs an ensemble on a GPU. A GPU step costs about the
 #: same for a thousand lanes as for one, and many small ensembles sharing one GPU queue
-#: for it: the ``ensemble`` suite (64 and 256 lanes) on one H200 with 16 workers took 3 to
+#: for it: the ``ensemble`` suite (64 and 256 lanes) on one H200 with 16 workers took 1.3 to
 #: 23 times the solve time of this repository's 2-core CPU (genalpha 5.6 s against 0.30 s,
 #: rattle 1.7 s against 0.18 s). From 1024 lanes on the GPU was ahead of one CPU core for
 #: every method measured (``benchmarks/perf/ensemble.py``: rattle 1.55e7 lane-steps/s
