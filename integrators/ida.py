@@ -137,7 +137,7 @@ def iteration_matrix(t, y, yp, cj, *, mech: Mechanics, formulation: str):
 def iteration_pattern(mech: Mechanics, formulation: str):
     """A structural superset of the iteration matrix's pattern, ``(rows, cols, shape)``,
     assembled from the blocks of the formulation (``None`` where
-    :meth:`~problems.mechanics.Mechanics.dynamics_pattern` has none).
+    :attr:`~problems.mechanics.Mechanics.dynamics_pattern` has none).
 
     With ``y = (q, v, lam[, mu])`` the blocks are: identities where ``q'`` and ``v`` enter;
     ``G`` and ``G^T`` where the constraints and multipliers do; the Hessian pattern of
@@ -147,7 +147,7 @@ def iteration_pattern(mech: Mechanics, formulation: str):
     ``G v' + gamma`` (index 1) lie within ``G``'s pattern: each of their entries ``(i, k)``
     is a derivative of ``dg_i / dq_k``, which is identically zero off ``G``'s pattern.
     """
-    dynamics = mech.dynamics_pattern()
+    dynamics = mech.dynamics_pattern
     mass = mech.mass_pattern()
     if dynamics is None or mass is None:
         return None

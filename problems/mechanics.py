@@ -354,6 +354,7 @@ class Mechanics:
         return np.repeat(np.arange(self.n, dtype=np.int64), blocks.size)[keep.ravel()], \
             members[keep]
 
+    @cached_property
     def dynamics_pattern(self) -> tuple[np.ndarray, np.ndarray] | None:
         """A structural superset of the pattern of the ``n x 2n`` Jacobian of
         ``M(q) a - force(t, q, v)`` in ``(q, v)``, for any ``a``, found without tracing the
