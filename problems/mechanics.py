@@ -346,13 +346,10 @@ class Mechanics:
         if self.mass_matrix is not None:
             rows, cols = self.mass_matrix.nonzero()
             return rows.astype(np.int64), cols.astype(np.int64)
-        blocks = self.mass_blocks
-        if blocks is None:
+        if self.mass_blocks is None:
             return None
-        members = blocks.members
-        keep = members >= 0
-        return np.repeat(np.arange(self.n, dtype=np.int64), blocks.size)[keep.ravel()], \
-            members[keep]
+        diagonal = np.arange(self.n, dtype=np.int64)
+        return self.mass_blocks.spread(diagonal, diagonal)
 
     @cached_property
     def dynamics_pattern(self) -> tuple[np.ndarray, np.ndarray] | None:
