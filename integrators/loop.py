@@ -35,6 +35,20 @@ the sample. The per-step work thus never touches the window and sample arrays: o
 sps-receiver that made the loop a fifth faster than updating them at every step under the
 flag, and twice as fast without it.
 
+Ensembles
+---------
+An ensemble (:meth:`integrators.fixed.FixedStep.prepare_ensemble`) runs the same loop with
+a leading axis of lanes on the carry: the step, the observation and the measures are
+mapped over the lanes (``jax.vmap``), the loops' control is one scalar for all of them.
+Every live lane is at the same step, a loop goes on while some lane is live, and a lane
+that has failed keeps its last good state, step count, maxima and samples. It is still
+computed, since the lanes run in step, and its result dropped; from its own state it
+would fail again, its Newton loop running to the iteration limit, and a mapped Newton
+loop runs until its slowest lane is done: every lane would pay that limit at every later
+step. So a failed lane steps from a live lane's state instead: 64 lanes of rattle on
+``chain:N=8``, 1e4 steps of ``h = 0.01``, of which 12 lanes fail between ``t = 24`` and
+``92``, took 38.3 s before and 4.6 to 5.0 s after, every lane's result the same bit for bit.
+
 Reuse
 -----
 The step size, the step count, the window count and the sample stride are arguments of
@@ -50,6 +64,7 @@ from __future__ import annotations
 import math
 import os
 from collections import OrderedDict
+from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -86,8 +101,9 @@ COMPILE_FLAG_UNTIL = (0, 10)
 #: ``h = 0.01``, ``benchmarks/perf/ensemble.py``): rattle on the pendulum 5.6e6 -> 1.55e7
 #: lane-steps/s at 1024 lanes and 5.4e7 -> 1.26e8 at 16384, its 256 receiver lanes still
 #: within 8.1e-13 of single runs on the CPU; lobatto3ab3 and the chain's dense solves not
-#: faster (1.33e6 and 1.30e6 lane-steps/s at 1024 lanes; why was not examined). XLA:CPU
-#: ignores these options.
+#: faster (1.33e6 and 1.30e6 lane-steps/s at 1024 lanes), measured before the fixes of a
+#: hoisted QR (:func:`linalg.dense.rarely`) and of failed lanes' Newton (module notes),
+#: which may be why. XLA:CPU ignores these options.
 COMMAND_BUFFER_FLAGS = ("--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL",
                         "--xla_gpu_graph_min_graph_size=1")
 
@@ -149,9 +165,15 @@ class Plan(NamedTuple):
         return ((w + 1) * self.n_steps + self.n_windows - 1) // self.n_windows
 
 
-def put(rows: jax.Array, i: jax.Array, row: jax.Array) -> jax.Array:
-    """``rows`` with row ``i`` replaced, as an in-place dynamic update (not a scatter)."""
-    return jax.lax.dynamic_update_index_in_dim(rows, row, i, 0)
+def put(rows: jax.Array, i: jax.Array, row: jax.Array, axis: int = 0) -> jax.Array:
+    """``rows`` with row ``i`` along ``axis`` replaced, as an in-place dynamic update (not a
+    scatter)."""
+    return jax.lax.dynamic_update_index_in_dim(rows, row, i, axis)
+
+
+def take(rows: jax.Array, i: jax.Array, axis: int = 0) -> jax.Array:
+    """Row ``i`` of ``rows`` along ``axis``."""
+    return jax.lax.dynamic_index_in_dim(rows, i, axis, keepdims=False)
 
 
 def attempt(step: Step, observe: Callable[[Any], tuple[jax.Array, jax.Array]], carry: Any,
@@ -174,72 +196,114 @@ def attempt(step: Step, observe: Callable[[Any], tuple[jax.Array, jax.Array]], c
 
 
 def _loop(mech: Mechanics, grid: Grid, step: Step,
-          observe: Callable[[Any], tuple[jax.Array, jax.Array]]) -> Callable:
+          observe: Callable[[Any], tuple[jax.Array, jax.Array]], lanes: bool) -> Callable:
     """The loop as a function of ``(carry0, h, N, W, stride)``: ``N`` steps of size ``h``
     from ``grid.t0``, maxima over ``W`` windows, a sample every ``stride`` steps (in
     arrays of the grid's sizes, of which the first ``W`` and ``N // stride + 1`` rows are
-    used)."""
+    used).
+
+    With ``lanes`` the carry has a leading axis of lanes; the step, the observation and
+    the measures are mapped over it (``jax.vmap``), while the loops' control stays one
+    scalar for all of them: every live lane is at the same step ``k``, a loop goes on while
+    some lane is live, and a lane that has failed is carried unchanged (its own step count,
+    ``lane``, stops there). A failed lane is still computed, from a live lane's state
+    (module notes).
+    """
     t0, n_inv = grid.t0, len(mech.system.invariants)
-    measure = measurer(mech)
+    lift = jax.vmap if lanes else (lambda f, **_: f)
+    live = jnp.any if lanes else (lambda x: x)
+    measure = lift(measurer(mech), in_axes=(None, 0, 0, 0, 0))
+    see = lift(observe)
+    tried = lift(partial(attempt, step, observe), in_axes=(0, None, None))
 
-    def segment(k, carry, counts, stop, h, E0, I0):
-        """Steps ``k .. stop - 1`` or up to the first failure; maxima of their measures.
+    def select(mask, new, old):
+        # Lane by lane; where every lane is live (the common case) no select at all.
+        return jax.lax.cond(jnp.all(mask), lambda: new, lambda: jax.tree_util.tree_map(
+            lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b),
+            new, old))
 
-        A failed step leaves ``carry`` and ``k`` at the last good step and stops the loop.
+    def keep(active, new, old):
+        # A lane that is not live keeps its state. Without lanes the loops stop at the
+        # first failure, so every step taken is live.
+        return select(active, new, old) if lanes else new
+
+    def stand_in(active, carry):
+        # A failed lane is still computed (the lanes run in step) and its result dropped.
+        # From its own last state it would fail again, Newton running to its iteration
+        # limit and holding every lane there at every later step; it steps from a live
+        # lane's state instead, at that lane's cost.
+        if not lanes:
+            return carry
+        live_state = jax.tree_util.tree_map(lambda a: a[jnp.argmax(active)][None], carry)
+        return select(active, carry, live_state)
+
+    def segment(k, lane, carry, code, resid, counts, stop, h, E0, I0):
+        """Steps ``k .. stop - 1``, each lane up to its first failure; the maxima of
+        their measures.
+
+        A failed step leaves a lane's ``carry`` and ``lane`` (its step count) at its last
+        good step; without lanes it stops the loop.
         """
 
         def cond(state):
-            k, _, code, *_ = state
-            return (k < stop) & (code == 0)
+            k, _, _, code, *_ = state
+            return (k < stop) & live(code == 0)
 
         def body(state):
-            k, carry, _, _, peak, counts = state
-            carry, code, resid, inc, (q, v) = attempt(step, observe, carry, t0 + k * h, h)
-            good = code == 0
-            k1 = k + good.astype(k.dtype)
-            m = measure(t0 + k1 * h, q, v, E0, I0)
-            peak = jnp.maximum(peak, jnp.where(good, m, 0.0))
-            return k1, carry, code, resid, peak, counts + inc
+            k, lane, carry, code, resid, peak, counts = state
+            active = code == 0
+            new, code1, resid1, inc, (q, v) = tried(stand_in(active, carry), t0 + k * h, h)
+            good = active & (code1 == 0)
+            m = measure(t0 + (k + 1) * h, q, v, E0, I0)
+            return (k + 1, lane + good.astype(lane.dtype), keep(active, new, carry),
+                    jnp.where(active, code1, code), jnp.where(active, resid1, resid),
+                    jnp.maximum(peak, jnp.where(good[..., None], m, 0.0)),
+                    counts + jnp.where(active[..., None], inc, 0))
 
-        state = (k, carry, jnp.asarray(0, jnp.int32), jnp.asarray(0.0),
-                 jnp.zeros(3 + n_inv), counts)
-        return jax.lax.while_loop(cond, body, state)
+        peak = jnp.zeros(code.shape + (3 + n_inv,))
+        return jax.lax.while_loop(cond, body, (k, lane, carry, code, resid, peak, counts))
 
     def run(carry0, h, N, W, stride):
-        q0, v0 = observe(carry0)
+        q0, v0 = see(carry0)
         tz = jnp.asarray(t0, dtype=jnp.float64)
-        E0, I0 = mech.energy(q0, v0), mech.invariant_values(q0, v0)
-        wins = jnp.zeros((grid.n_windows, 3 + n_inv)).at[0].set(measure(tz, q0, v0, E0, I0))
-        samp_q = jnp.zeros((grid.n_samples, mech.n)).at[0].set(q0)
-        samp_v = jnp.zeros((grid.n_samples, mech.n)).at[0].set(v0)
-        counts = jnp.zeros(len(WORK), jnp.int64)
+        E0, I0 = lift(mech.energy)(q0, v0), lift(mech.invariant_values)(q0, v0)
+        shape = E0.shape
+        first = measure(tz, q0, v0, E0, I0)
+        wins = jnp.zeros(shape + (grid.n_windows, 3 + n_inv))
+        samp_q = jnp.zeros(shape + (grid.n_samples, mech.n))
+        samp_v = jnp.zeros(shape + (grid.n_samples, mech.n))
+        axis = len(shape)
+        wins, samp_q, samp_v = (put(a, 0, row, axis)
+                                for a, row in ((wins, first), (samp_q, q0), (samp_v, v0)))
 
         def cond(state):
-            k, _, code, *_ = state
-            return (k < N) & (code == 0)
+            k, _, _, code, *_ = state
+            return (k < N) & live(code == 0)
 
         def body(state):
-            k, carry, _, _, wins, samp_q, samp_v, counts = state
+            k, lane, carry, code, resid, wins, samp_q, samp_v, counts = state
             # Step k lies in window w = k W // N, which ends before step ((w + 1) N + W - 1)
             # // W; the segment also ends where the next sample is due.
             w = k * W // N
             stop = jnp.minimum(((w + 1) * N + W - 1) // W, (k // stride + 1) * stride)
-            k, carry, code, resid, peak, counts = segment(k, carry, counts, stop, h, E0, I0)
-            wins = put(wins, w, jnp.maximum(wins[w], peak))
+            k, lane, carry, code, resid, peak, counts = segment(
+                k, lane, carry, code, resid, counts, stop, h, E0, I0)
+            wins = put(wins, w, jnp.maximum(take(wins, w, axis), peak), axis)
             # The state after k steps goes to slot k // stride when k is a multiple of the
-            # stride, where segments end; a segment that failed at its first step writes
-            # the state that slot already holds.
-            q, v = observe(carry)
-            due, slot = k % stride == 0, k // stride
-            samp_q = put(samp_q, slot, jnp.where(due, q, samp_q[slot]))
-            samp_v = put(samp_v, slot, jnp.where(due, v, samp_v[slot]))
-            return k, carry, code, resid, wins, samp_q, samp_v, counts
+            # stride, where segments end, from the lanes that reached step k.
+            q, v = see(carry)
+            due, slot = ((k % stride == 0) & (lane == k))[..., None], k // stride
+            samp_q = put(samp_q, slot, jnp.where(due, q, take(samp_q, slot, axis)), axis)
+            samp_v = put(samp_v, slot, jnp.where(due, v, take(samp_v, slot, axis)), axis)
+            return k, lane, carry, code, resid, wins, samp_q, samp_v, counts
 
-        state = (jnp.asarray(0, jnp.int64), carry0, jnp.asarray(0, jnp.int32),
-                 jnp.asarray(0.0), wins, samp_q, samp_v, counts)
-        k, carry, code, resid, wins, samp_q, samp_v, counts = jax.lax.while_loop(cond, body, state)
-        q, v = observe(carry)
-        return k, code, resid, q, v, wins, samp_q, samp_v, counts
+        state = (jnp.asarray(0, jnp.int64), jnp.zeros(shape, jnp.int64), carry0,
+                 jnp.zeros(shape, jnp.int32), jnp.zeros(shape), wins, samp_q, samp_v,
+                 jnp.zeros(shape + (len(WORK),), jnp.int64))
+        _, lane, carry, code, resid, wins, samp_q, samp_v, counts = jax.lax.while_loop(
+            cond, body, state)
+        q, v = see(carry)
+        return lane, code, resid, q, v, wins, samp_q, samp_v, counts
 
     return run
 
@@ -268,10 +332,10 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     linear_solver, pattern_nnz
         What the step's linear algebra is, recorded in the trajectory.
     lanes : bool
-        Run the ensemble of ``carry0`` in one compiled loop: the loop of one trajectory
-        under ``jax.vmap``. Each lane keeps its own step count, failure, counters, maxima
-        and samples; the loop runs until the last lane is done or has failed, and a lane
-        that has stopped is carried unchanged (a failed lane stops only itself).
+        Run the ensemble of ``carry0`` in one compiled loop, the step mapped over the
+        lanes (module notes). Each lane keeps its own step count, failure, counters,
+        maxima and samples; the loop runs until the last lane is done or has failed, and
+        a lane that has stopped is carried unchanged (a failed lane stops only itself).
 
     Returns
     -------
@@ -291,10 +355,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
     if compiled is None:
-        loop = _loop(mech, grid, step, observe)
-        if lanes:
-            loop = jax.vmap(loop, in_axes=(0, None, None, None, None))
-        compiled = compile_lifted(loop, *args)
+        compiled = compile_lifted(_loop(mech, grid, step, observe, lanes), *args)
         if cache_key is not None:
             _LOOPS[cache_key] = compiled
             while len(_LOOPS) > CACHE_SIZE:

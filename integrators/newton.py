@@ -171,6 +171,6 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
                        EXACT_WINDOW, False)
 
     simplified = converged(state, SIMPLIFIED_WINDOW)
-    state = rarely(~simplified, lambda: exact(state), state)
+    state = rarely(~simplified, exact, state, state)
     ok = simplified | converged(state, EXACT_WINDOW)
     return NewtonResult(state[0], ok, state[-1], norm(state[1]))

@@ -117,6 +117,21 @@ class Lifted:
         return sum(v.nbytes for v in self._values)
 
     @property
+    def buffer_bytes(self) -> int | None:
+        """Bytes of the buffers XLA assigned to the program (arguments, results and
+        temporaries, the lifted constants included), where it reports them. They are fixed
+        when the program is compiled, whatever its arguments' values (such as a time loop's
+        step count)."""
+        try:
+            stats = self._compiled.memory_analysis()
+        except Exception:   # not every executable (a deserialized one) reports it
+            return None
+        if stats is None:
+            return None
+        return int(stats.argument_size_in_bytes + stats.output_size_in_bytes
+                   + stats.temp_size_in_bytes - stats.alias_size_in_bytes)
+
+    @property
     def flops(self) -> float | None:
         """XLA's count of the program's floating-point operations, where it gives one.
 

@@ -81,6 +81,40 @@ def test_a_failing_lane_stops_only_itself():
         np.testing.assert_allclose(lanes[i].q_final, single.q_final, rtol=0, atol=1e-13)
 
 
+def test_a_failed_lane_does_not_hold_the_others_at_its_iteration_limit():
+    # A step whose iteration runs to its limit (and fails) from lane 2's states at
+    # t >= 3h. Every lane is computed at every step, so the loop must not step a failed
+    # lane from its own state again: the mapped iteration would run to that limit for all
+    # lanes at every later step. The iterations of every lane are recorded as computed.
+    import jax.numpy as jnp
+    from integrators.base import Failure
+    from integrators.loop import march
+    case = problems.make("pendulum").with_t_end(1.0)
+    q0s, v0s = draw(case, 4, seed=0)
+    h, limit, seen = 0.1, 1000, {i: [] for i in range(4)}
+
+    def step(carry, t, h):
+        q, v, lane = carry
+        stop = jnp.where((lane == 2) & (t >= 2.5 * h), limit, 1)
+        count = jax.lax.while_loop(lambda i: i < stop, lambda i: i + 1, 0)
+        jax.debug.callback(lambda i, c: seen[int(i)].append(int(c)), lane, count)
+        code = jnp.where(count >= limit, Failure.NEWTON, Failure.NONE)
+        return carry, code, jnp.asarray(0.0), {"n_newton": count}
+
+    carry0 = (jnp.asarray(q0s), jnp.asarray(v0s), jnp.arange(4))
+    lanes = march(case.mech, _grid(case), h, carry0, step, lambda carry: carry[:2],
+                  lanes=True)()
+    assert lanes[2].status == "failed" and lanes[2].fail_step == 4
+    assert [lane.counts["n_steps"] for lane in lanes] == [10, 10, 3, 10]
+    # Four lanes were computed at each of the 10 steps (the callback names the state a
+    # lane stepped from). Lane 2's state was stepped four times, the last to the limit,
+    # and never again: after its failure it stepped from a live lane's state, and every
+    # computation but that one took one iteration.
+    assert sum(len(counts) for counts in seen.values()) == 40
+    assert seen[2] == [1, 1, 1, limit]
+    assert all(c == 1 for i in (0, 1, 3) for c in seen[i])
+
+
 @pytest.mark.parametrize("method", ["baumgarte-tsit5", "baumgarte-dopri5",
                                     "baumgarte-dopri8"])
 def test_adaptive_lanes_equal_their_single_runs(method):

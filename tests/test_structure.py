@@ -261,6 +261,30 @@ def test_one_policy_for_redundant_constraints(monkeypatch):
     assert "linear_solver=dense" in traj.message
 
 
+@pytest.mark.parametrize("lanes", [None, 8])
+def test_the_rank_deficient_branch_is_computed_only_where_taken(lanes):
+    # The basic solution (QR with column pivoting, a LAPACK call) must stay inside the
+    # while loop that runs it only for a deficient system: hoisted out as loop-invariant,
+    # it runs at every solve, once per lane in an ensemble.
+    from linalg.dense import solve
+    rng = np.random.default_rng(0)
+    A = jnp.asarray(rng.normal(size=(5, 5)))
+    b = jnp.asarray(rng.normal(size=5))
+    f = solve if lanes is None else jax.vmap(solve)
+    args = (A, b) if lanes is None else (jnp.stack([A] * lanes), jnp.stack([b] * lanes))
+    text = jax.jit(f).lower(*args).compile().as_text()
+    computations = text.split("\n\n")
+    qr = [c for c in computations if "geqp3" in c]
+    assert qr and not any(c.lstrip().startswith("ENTRY") for c in qr)
+    x = f(*args)
+    assert np.allclose(np.asarray(x).reshape(-1, 5)[0], np.linalg.solve(A, b), rtol=1e-12)
+    # A deficient system still takes it: the basic solution of a consistent system.
+    S = A.at[4].set(A[0] + A[1])
+    rhs = S @ jnp.asarray(rng.normal(size=5))
+    y = solve(S, rhs)
+    assert np.max(np.abs(S @ y - rhs)) <= 1e-12 * np.max(np.abs(rhs))
+
+
 def test_banded_cholesky_drops_dependent_rows():
     # A singular band matrix (row 3 = row 1 + row 2 of G): the dropped row's unknown is
     # zero and the others solve the consistent system exactly.

@@ -25,16 +25,20 @@ Rates
 The plain step
     With ``--plain``, the pendulum's RATTLE step alone (:func:`plain`: the same equations,
     Newton on the multiplier to ``|g| <= 4e-16``, nothing else: no recording of
-    ``|g|``, ``|G v|`` or the energy, no failure test, no segments), as one trajectory and
-    vmapped over the same lanes. Its rates are what XLA makes of batching the bare step on
-    this machine, beside what the suite's loop achieves with its bookkeeping.
+    ``|g|``, ``|G v|`` or the energy, no failure test, no segments), and then the suite's
+    own ``Rattle.step`` (its Newton and stopping rule) alone in a plain loop, each as one
+    trajectory and vmapped over the same lanes. Their rates are what XLA makes of batching
+    the bare step on this machine, beside what the suite's loop achieves with its
+    bookkeeping.
 
 Memory
     ``rattle`` on ``chain:N=8`` with 16384 lanes, in fresh processes: the peak resident set
     (``VmHWM``) of the whole run (drawing the states, compiling, solving, reading back) at
-    each of ``--memory-steps``. The loop keeps per lane only its state, the window maxima
-    and three samples, so the peak must not grow with the steps; the bar is
-    :data:`MEMORY_BAR` at ``1e5`` steps.
+    each of ``--memory-steps``, beside the bytes of the buffers XLA assigned to the compiled
+    loop. The loop keeps per lane only its state, the window maxima and three samples, and
+    its step count is an argument of one compiled program, whose buffers are fixed when it
+    is compiled; so the peak must not grow with the steps. The bar is :data:`MEMORY_BAR` at
+    ``1e5`` steps.
 
 Figures and verdicts are printed; the exit status is 1 only when something did not run.
 
@@ -163,19 +167,32 @@ def plain(steps: int, h: float, lanes: list[int], repeats: int, device: jax.Devi
     def run(q0, v0):
         return jax.lax.scan(step, (q0, mech.momentum(q0, v0), 0), None, length=steps)[0]
 
+    integ = integrators.make("rattle", h=h)
+    schur = integ.linear_algebra(mech)
+
+    def run_step(q0, v0, h):
+        # The suite's step (its Newton and stopping rule) with nothing around it.
+        carry = integ.start(mech, schur, q0, v0, t)
+        return jax.lax.scan(lambda c, _: (integ.step(mech, schur, c, t, h)[0], None), carry,
+                            None, length=steps)[0][:2]
+
     q0s, v0s = draw(case, max(lanes), seed=0)
-    with jax.default_device(jax_device("cpu")):
-        one = jax.jit(run).lower(q0s[0], v0s[0]).compile()
-        seconds, out = timed(lambda: jax.block_until_ready(one(q0s[0], v0s[0])), repeats)
-    single = steps / seconds
-    print(f"\nplain RATTLE step on pendulum (no recording, no failure test): one trajectory "
-          f"{single:.3g} steps/s ({int(out[2]) / steps:.2f} Newton iterations per step)")
-    for k in lanes:
-        with jax.default_device(device):
-            batch = jax.jit(jax.vmap(run)).lower(q0s[:k], v0s[:k]).compile()
-            seconds, _ = timed(lambda: jax.block_until_ready(batch(q0s[:k], v0s[:k])), repeats)
-        print(f"  {k:6d} lanes on {device.platform}: {k * steps / seconds:.3g} lane-steps/s = "
-              f"{k * steps / seconds / single:.2f} x its one trajectory", flush=True)
+    for title, fn in (("plain RATTLE step on pendulum (no recording, no failure test, Newton "
+                       "to |g| <= 4e-16)", run),
+                      ("the suite's Rattle.step alone on pendulum (its stopping rule; no "
+                       "recording, no failure rule)", lambda q, v: run_step(q, v, jnp.float64(h)))):
+        with jax.default_device(jax_device("cpu")):
+            one = jax.jit(fn).lower(q0s[0], v0s[0]).compile()
+            seconds, out = timed(lambda: jax.block_until_ready(one(q0s[0], v0s[0])), repeats)
+        single = steps / seconds
+        print(f"\n{title}: one trajectory {single:.3g} steps/s")
+        for k in lanes:
+            with jax.default_device(device):
+                batch = jax.jit(jax.vmap(fn)).lower(q0s[:k], v0s[:k]).compile()
+                seconds, _ = timed(lambda: jax.block_until_ready(batch(q0s[:k], v0s[:k])),
+                                   repeats)
+            print(f"  {k:6d} lanes on {device.platform}: {k * steps / seconds:.3g} lane-steps/s "
+                  f"= {k * steps / seconds / single:.2f} x its one trajectory", flush=True)
 
 
 CHILD = """
@@ -199,7 +216,8 @@ with jax.default_device(device):
 stats = device.memory_stats() or {}
 print(json.dumps({"ok": sum(t.status == "ok" for t in trajs), "solve_s":
                   time.perf_counter() - start, "peak_rss": peak_rss(),
-                  "platform": device.platform, "device_peak": stats.get("peak_bytes_in_use")}))
+                  "platform": device.platform, "device_peak": stats.get("peak_bytes_in_use"),
+                  "buffers": solve.compiled.buffer_bytes}))
 """
 
 
@@ -219,6 +237,8 @@ def memory(lanes: int, counts: list[int], h: float, device: str) -> bool:
         on = info["platform"]
         if info["device_peak"] is not None:
             on += f", device peak {info['device_peak'] / 2**20:.0f} MiB"
+        if info["buffers"] is not None:
+            on += f", the loop's buffers {info['buffers'] / 2**20:.0f} MiB"
         print(f"  {steps:.0e} steps ({on}): peak RSS {peak / 2**20:.0f} MiB; {info['ok']} of "
               f"{lanes} lanes ok; solve {info['solve_s']:.1f} s "
               f"({lanes * steps / info['solve_s']:.3g} lane-steps/s)", flush=True)
