@@ -20,8 +20,8 @@ drives the same functions by hand.
 
 Nothing in ``step`` branches in Python on the values of its arrays (failures are codes,
 selected with ``jnp.where``), so an ensemble of initial states is a leading axis away:
-:meth:`FixedStep.prepare_ensemble` maps ``start`` over the lanes' ``(q0, v0)`` and runs the
-time loop under ``jax.vmap``, one compiled loop for every lane.
+:meth:`FixedStep.prepare_ensemble` maps ``start`` over the lanes' ``(q0, v0)`` and runs one
+compiled time loop for every lane, ``step`` mapped over them (``jax.vmap``).
 """
 
 from __future__ import annotations
@@ -87,8 +87,8 @@ class FixedStep(Integrator):
         return self._march(mech, schur, grid, carry0, lanes=False)
 
     def prepare_ensemble(self, case: Case, grid: Grid, q0s, v0s):
-        """One compiled loop for the whole ensemble: ``start`` and the time loop under
-        ``jax.vmap`` over the lanes (:func:`integrators.loop.march`)."""
+        """One compiled loop for the whole ensemble: ``start`` mapped over the lanes, then
+        the time loop with the step mapped over them (:func:`integrators.loop.march`)."""
         self.check()
         mech = case.mech
         schur = self.linear_algebra(mech)
