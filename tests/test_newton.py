@@ -1,16 +1,40 @@
-"""Newton's method on the structured path: where simplified Newton stalls, it is not accepted."""
+"""Newton's stopping rule, and on the structured path: where simplified Newton stalls, it is
+not accepted."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import integrators
 import problems
 from integrators.base import Grid
+from integrators.newton import AT_FLOOR, EPS, newton
+
+
+def test_newton_stops_where_quadratic_convergence_reaches_the_round_off_floor():
+    # z^2 = 2 from 1.5: residuals 0.25, 6.9e-3, 6.0e-6, 4.5e-12, then 4.4e-16, within twice
+    # the floor eps (1 + |J| |z|) = 5 eps after a contraction of 1e-4. Waiting for the
+    # residual to stop halving took a fifth iteration that changed nothing.
+    sol = newton(lambda z: z * z - 2.0, jnp.array([1.5]), 1e-16, 50)
+    assert bool(sol.converged) and int(sol.iterations) == 4
+    assert float(sol.residual) <= AT_FLOOR * EPS * 5.0
+    assert abs(float(sol.z[0]) - np.sqrt(2.0)) <= EPS * np.sqrt(2.0)
+
+
+def test_newton_does_not_stop_at_the_floor_while_contracting_slowly():
+    # A double root, (z - 1)^2 from 2: Newton converges linearly, each iteration
+    # contracting the residual by 1/4. Its residual 2.2e-16 after 26 iterations is within
+    # twice the floor eps (1 + |J| |z|), but a contraction of 1/4 is not quadratic
+    # convergence, so the iteration goes on, here to the tolerance.
+    sol = newton(lambda z: (z - 1.0) ** 2, jnp.array([2.0]), 1e-16, 50)
+    assert bool(sol.converged) and int(sol.iterations) == 27
+    assert float(sol.residual) <= 1e-16
+
 
 # Verification runs of large mechanisms (10 to 20 s each, most of it compilation).
-pytestmark = pytest.mark.slow
 
 
+@pytest.mark.slow
 def test_structured_rattle_crosses_a_singular_configuration_on_its_branch():
     # four-bar:N=1024 on the kkt path, over its first singular configuration (cranks
     # horizontal at t = 0.722). The tips sit at x_i = i + cos(phi), so g's round-off is
@@ -32,6 +56,7 @@ def test_structured_rattle_crosses_a_singular_configuration_on_its_branch():
     assert error <= 1.15e-4
 
 
+@pytest.mark.slow
 def test_structured_generalized_alpha_accepts_the_round_off_of_large_coordinates():
     # genalpha's unknowns are scaled (beta h^2 a, beta h^2 lam) and small, but its
     # constraint rows are computed from q: four-bar:N=1024's tips sit near x = 1024, where

@@ -51,9 +51,11 @@ def test_rattle_equals_lobatto3ab2(problem, h, t_end):
     _, a = solve("rattle", problem, h, t_end)
     _, b = solve("lobatto3ab2", problem, h, t_end)
     # The two solve the same equations with different unknowns; the difference is
-    # round-off of order 1e-16 per step, accumulated over at most 1000 steps.
+    # round-off of order 1e-16 per step, accumulated over at most 1000 steps, each
+    # Newton stopping within twice its round-off floor (measured on the receiver: 1.4e-12
+    # in v, 2e-13 while Newton iterated until the residual stopped halving).
     assert np.max(np.abs(a.q_final - b.q_final)) <= 1e-12
-    assert np.max(np.abs(a.v_final - b.v_final)) <= 1e-12
+    assert np.max(np.abs(a.v_final - b.v_final)) <= 4e-12
 
 
 @pytest.mark.parametrize("key", SPARK)

@@ -286,6 +286,19 @@ def test_the_rank_deficient_branch_is_computed_only_where_taken(lanes):
     assert np.count_nonzero(np.asarray(y) == 0.0) == 1   # the dependent unknown
 
 
+def test_equilibration_scales_by_exact_powers_of_two():
+    # The LU's equilibration must not round the matrix: every scale, as compiled, is an
+    # exact power of two, the nearest to 1/x in the logarithm (x s within [2^-1/2, 2^1/2]).
+    # exp2(-round(log2 x)) under XLA missed a power of two for about half of these values.
+    from linalg.dense import power_of_two_scale
+    rng = np.random.default_rng(3)
+    x = np.concatenate([10.0 ** rng.uniform(-300, 300, 20000), rng.uniform(0, 4, 20000)])
+    s = np.asarray(jax.jit(power_of_two_scale)(jnp.asarray(x)))
+    assert np.all(np.frexp(s)[0] == 0.5)
+    assert np.all((x * s >= 2 ** -0.5) & (x * s <= 2 ** 0.5))
+    assert np.asarray(power_of_two_scale(jnp.zeros(2))).tolist() == [1.0, 1.0]
+
+
 def test_banded_cholesky_drops_dependent_rows():
     # A singular band matrix (row 3 = row 1 + row 2 of G): the dropped row's unknown is
     # zero and the others solve the consistent system exactly.
