@@ -96,17 +96,17 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     ``linear`` gives each correction; by default the exact autodiff Jacobian, densely
     (:func:`dense_linear`). A structured method passes an approximate Jacobian instead
     (simplified Newton: one factorisation per step, linear convergence), under the same
-    convergence test. Where simplified Newton does not converge (it stops halving the
-    residual above its round-off floor, diverges, meets a non-finite residual or runs out
-    of its ``max_iter`` corrections), Newton's method with the exact Jacobian takes over for
+    convergence test but for one exit (below). Where simplified Newton does not converge
+    (it stops halving the residual above its round-off floor, diverges, meets a non-finite
+    residual or runs out of its ``max_iter`` corrections), Newton's method with the exact Jacobian takes over for
     up to ``max_iter`` more (:func:`krylov_linear`), from the better of ``z0`` and the last
     finite iterate, preconditioned by ``refactor(z)`` at that iterate where given (the
     approximate Jacobian factorised afresh: the frozen one may be nearly singular, as at
     a singular configuration of a mechanism) and by ``linear`` otherwise; only when that
-    fails too has the solve failed. The structured path is then as robust as the dense one, whose Newton has
-    the exact Jacobian throughout, and a step that simplified Newton solves costs no more at
-    run time (the compiled program holds both iterations: see :func:`krylov_linear` for what
-    that costs).
+    fails too has the solve failed. The structured path is then as robust as the dense one,
+    whose Newton has the exact Jacobian throughout, and a step that simplified Newton solves
+    costs no more at run time (the compiled program holds both iterations: see
+    :func:`krylov_linear` for what that costs).
 
     Converged when ``||residual(z)||_inf <= tol``. The test is on the residual, not on the
     correction, so that ``tol`` bounds the constraint violation left in the solution. More
@@ -115,11 +115,11 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     stopped contracting (less than halved) within a window of its round-off floor
     ``eps (1 + terms)``, with ``terms`` the magnitude of the terms the residual is computed
     from (the second value ``linear`` returns; ``max_i sum_j |J_ij| |z_j|`` with the last
-    Jacobian ``J`` by default); and, with the exact dense Jacobian, the residual reached
-    that floor (within :data:`AT_FLOOR` times it) by a contraction of at least
-    :data:`QUADRATIC` in one iteration. Scaling with the terms, not with ``|z|`` alone, matters where large
-    forces cancel (stiff springs, large multipliers): there the residual cannot fall below
-    ``eps`` times those forces. A ``tol`` below round-off (such as 1e-16) therefore means
+    Jacobian ``J`` by default); and, with the exact dense Jacobian, an iteration contracted
+    the residual by at least :data:`QUADRATIC` to within :data:`AT_FLOOR` times that floor.
+    Scaling with the terms, not with ``|z|`` alone, matters where large forces cancel (stiff
+    springs, large multipliers): there the residual cannot fall below ``eps`` times those
+    forces. A ``tol`` below round-off (such as 1e-16) therefore means
     "iterate to round-off"; a larger ``tol`` does not widen the window.
 
     A residual that quadratic convergence brought to its floor ends the iteration at once:
@@ -166,7 +166,9 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
         stalled = (r_norm > 0.5 * r_prev) & (r_norm <= window * floor)
         done = (r_norm <= tol) | (dz_norm <= 4 * EPS * (1.0 + norm(z))) | stalled
         if quick:
-            done = done | ((r_norm <= AT_FLOOR * floor) & (r_norm <= QUADRATIC * r_prev))
+            # Only after an iteration: the start's terms are |z0|, not |J| |z|, no floor.
+            done = done | ((r_norm <= AT_FLOOR * floor) & (r_norm <= QUADRATIC * r_prev)
+                           & jnp.isfinite(r_prev))
         go = (~done) & (it < limit) & jnp.isfinite(r_norm)
         # Simplified Newton stops where it no longer halves the residual (docstring).
         return done, (go & (r_norm <= 0.5 * r_prev)) if contracting else go

@@ -32,8 +32,6 @@ def test_newton_does_not_stop_at_the_floor_while_contracting_slowly():
 
 
 # Verification runs of large mechanisms (10 to 20 s each, most of it compilation).
-
-
 @pytest.mark.slow
 def test_structured_rattle_crosses_a_singular_configuration_on_its_branch():
     # four-bar:N=1024 on the kkt path, over its first singular configuration (cranks

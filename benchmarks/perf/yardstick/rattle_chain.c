@@ -11,8 +11,9 @@
  *     lam, with the Jacobian -h^2/(2m) G(q1) G(q0)^T evaluated at every iterate (as rattle
  *     does by autodiff) and rattle's convergence test (integrators/newton.py: residual at
  *     the tolerance, correction at round-off, residual within twice the round-off floor
- *     after a contraction of 1e-2 in one iteration, or stalled within 1e3 times the floor). Constraint k involves points k-1 and k only, so G(q1) G(q0)^T is tridiagonal
- *     and each iteration is one Thomas solve, O(N). The exact Newton is kept rather than a
+ *     after an iteration contracted it by 1e-2, or stalled within 1e3 times the floor).
+ *     Constraint k involves points k-1 and k only, so G(q1) G(q0)^T is tridiagonal and
+ *     each iteration is one Thomas solve, O(N). The exact Newton is kept rather than a
  *     simplified one (G(q0) G(q0)^T factorised once per step): Thomas fuses factorisation
  *     and solve, so refactorising costs little, and quadratic convergence saves iterations;
  *     it also takes rattle's iteration counts, so the two do the same work per step.
@@ -194,7 +195,7 @@ int main(int argc, char **argv) {
             for (long k = 0; k < N; k++) lam_norm = fmax(lam_norm, fabs(lam[k]));
             const double floor_r = fmax(tol, EPS * (1.0 + terms));
             const int stalled = r > 0.5 * r_prev && r <= 1e3 * floor_r;
-            const int at_floor = r <= 2.0 * floor_r && r <= 1e-2 * r_prev;
+            const int at_floor = r <= 2.0 * floor_r && r <= 1e-2 * r_prev && isfinite(r_prev);
             if (r <= tol || dz_norm <= 4.0 * EPS * (1.0 + lam_norm) || at_floor || stalled)
                 break;
             if (it == MAX_ITER || !isfinite(r)) {

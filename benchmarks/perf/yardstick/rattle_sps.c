@@ -54,7 +54,7 @@ int main(int argc, char **argv) {
             r = constraint(q1, c, l2);
             const double floor_r = fmax(tol, eps * (1 + fabs(lam)));
             int stalled = fabs(r) > 0.5 * rprev && fabs(r) <= 1e3 * floor_r;
-            int at_floor = fabs(r) <= 2 * floor_r && fabs(r) <= 1e-2 * rprev;
+            int at_floor = fabs(r) <= 2 * floor_r && fabs(r) <= 1e-2 * rprev && isfinite(rprev);
             if (fabs(r) <= tol || fabs(dl) <= 4 * eps * (1 + fabs(lam)) || at_floor || stalled)
                 break;
             if (++it > 20) {
