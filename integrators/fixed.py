@@ -60,9 +60,27 @@ class FixedStep(Integrator):
 
     batched = True
 
+    def dense_max(self, mech: Mechanics) -> int:
+        """The most constraints for which ``linear_solver = "auto"`` keeps the dense path
+        where a structured one could run (:func:`linalg.schur.choose`): none by default.
+
+        The dense path runs Newton on the method's whole stage system (positions, momenta
+        and multipliers of every stage) with its exact autodiff Jacobian: ``K`` forward
+        derivatives and an ``O(K^3)`` LU for ``K`` unknowns at every iteration, through
+        LAPACK, which keeps XLA from compiling the time loop into one kernel. The
+        structured path's simplified Newton takes two to five times the iterations, each
+        ``O(n)`` and inside the one kernel. Measured one trajectory at a time
+        (``python -m benchmarks.perf.crossover``, one core): the structured path was the
+        faster on every constant-diagonal and block-diagonal mass tried, from one to eight
+        constraints: 5 to 21 times for lobatto3ab3, 3 to 10 times for the
+        generalized-alpha members (load 0.2 to 1).
+        """
+        return 0
+
     def linear_algebra(self, mech: Mechanics):
-        """The solver for ``G M^{-1} G^T`` that the steps use (:meth:`Mechanics.schur`)."""
-        return mech.schur(getattr(self, "linear_solver", "auto"))
+        """The solver for ``G M^{-1} G^T`` that the steps use (:meth:`Mechanics.schur`,
+        with this family's :meth:`dense_max`)."""
+        return mech.schur(getattr(self, "linear_solver", "auto"), self.dense_max(mech))
 
     def start(self, mech: Mechanics, schur, q0: jax.Array, v0: jax.Array, t0: jax.Array) -> Any:
         """The carry at ``t0`` from consistent ``(q0, v0)``."""

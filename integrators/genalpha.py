@@ -166,6 +166,16 @@ class AlphaMethod(FixedStep):
 
         return linear, S0.ok & P0.ok if ggl else S0.ok
 
+    def linear_algebra(self, mech: Mechanics):
+        """The solver for ``S`` (:meth:`integrators.fixed.FixedStep.linear_algebra`) and,
+        for the GGL form on a structured path, its Gram solver of the same kind, built
+        here: inside the traced step its index arrays would be made under the trace and
+        kept, cached, by a later run's trace."""
+        schur = super().linear_algebra(mech)
+        if FORMULATIONS[self.formulation] and schur.name != "dense":
+            mech.gram(schur.name)
+        return schur
+
     def start(self, mech: Mechanics, schur, q0, v0, t0) -> State:
         """Consistent starting values: ``a_0`` and ``\\ddot q_0`` from the index-1 system."""
         acc, lam = mech.accelerations(t0, q0, v0, schur=schur)

@@ -39,8 +39,10 @@ class LobattoIIIAIIIB(FixedStep):
     the Newton tolerance. The stage equations are solved together by Newton's method,
     warm-started from the previous step's multipliers.
 
-    Small systems use the exact autodiff Jacobian of the whole stage system, densely.
-    Large sparse ones (``linear_solver``, :mod:`linalg`) use simplified Newton
+    The dense path (``linear_solver = "dense"``, or a mass that no structured solver
+    takes) uses the exact autodiff Jacobian of the whole stage system. The structured
+    ones (:mod:`linalg`; chosen by default wherever the mass allows, even for one
+    constraint: :meth:`integrators.fixed.FixedStep.dense_max`) use simplified Newton
     with the Jacobian frozen at ``(q_0, p_0)``, without the force Jacobian and the
     derivatives of ``G`` (exact for the linear part of a separable system), and eliminate
     the stage positions and momenta: with ``S_0 = G(q_0) M^{-1} G(q_0)^T`` the corrections

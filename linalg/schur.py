@@ -15,9 +15,10 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
 ``solve(factor, r)``):
 
 ``dense``
-    ``G`` by forward-mode autodiff, ``S`` formed and factorised by Cholesky: one compiled
-    kernel, the fastest path for small systems (and the only one for a configuration-
-    dependent mass given as a matrix function).
+    ``G`` by forward-mode autodiff, ``S`` formed and factorised by Cholesky (a division
+    for one constraint): the exact path for small systems, whose callers may run Newton
+    with the exact Jacobian on it, and the only one for a configuration-dependent mass
+    given as a matrix function.
 ``banded`` (:mod:`linalg.banded`)
     ``G``'s values by compressed autodiff (a function of ``(q, t)`` the caller supplies),
     ``S`` assembled by gathers in a bandwidth-reducing order (reverse Cuthill-McKee) and
@@ -41,9 +42,12 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
 :func:`choose` picks by structure. A constant mass that is not diagonal: ``kkt`` above
 :data:`DENSE_KKT_MAX` constraints when the augmented system's band is at most
 :data:`linalg.kkt.KKT_BAND_MAX` wide, else ``dense``. Otherwise ``dense`` for at most
-:data:`DENSE_MAX` constraints or a mass that is not a constant diagonal; else ``banded``
+``dense_max`` constraints or a mass that is not a constant diagonal; else ``banded``
 when the bandwidth of the core after reordering is at most
-:data:`linalg.banded.BAND_MAX`, else ``superlu``.
+:data:`linalg.banded.BAND_MAX`, else ``superlu``. ``dense_max`` is the caller's crossover:
+a method that runs Newton on its whole stage system passes its own (the fixed-step
+families, :meth:`integrators.fixed.FixedStep.dense_max`), the others take
+:data:`DENSE_MAX`.
 
 Redundant constraints follow one policy on every path, the basic solution
 (:mod:`linalg.dense`).
@@ -64,8 +68,11 @@ from linalg.kkt import KKT, KKT_BAND_MAX
 from linalg.pattern import Pattern
 from linalg.sparse import SuperLU
 
-#: Largest number of constraints solved densely by default. Measured with RATTLE on the
-#: chain (``python -m benchmarks.perf.scaling``): dense is faster below about this size.
+#: Largest number of constraints solved densely by default, where the caller names no
+#: crossover of its own: Baumgarte's index-1 accelerations and the projections (one solve
+#: with ``S`` per evaluation, no Newton iteration), Radau IIA (whose structured iteration
+#: leaves out the force Jacobian that its stiff problems need) and IDA's choice of a sparse
+#: solver. The fixed-step families name theirs (``python -m benchmarks.perf.crossover``).
 DENSE_MAX = 8
 
 #: Largest number of constraints solved densely by default where the mass is constant but
@@ -87,7 +94,7 @@ def choose(kind: str, shape: tuple[int, int],
            mass_diagonal: np.ndarray | None = None,
            sparsity: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
            G_values: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
-           mass_matrix: sp.spmatrix | None = None) -> Schur:
+           mass_matrix: sp.spmatrix | None = None, dense_max: int = DENSE_MAX) -> Schur:
     """The solver for ``S = G M^{-1} G^T``: ``kind`` or, for ``"auto"``, by structure.
 
     Parameters
@@ -110,6 +117,9 @@ def choose(kind: str, shape: tuple[int, int],
     mass_matrix : scipy.sparse matrix, optional
         A constant mass that is not diagonal; the ``kkt`` solver needs it (or
         ``mass_diagonal``).
+    dense_max : int
+        For ``"auto"``: the most constraints solved densely where a structured solver
+        could run (module notes).
 
     Raises
     ------
@@ -134,7 +144,7 @@ def choose(kind: str, shape: tuple[int, int],
             raise ValueError(f"linear_solver = 'kkt': the augmented system's bandwidth "
                              f"{solver.bandwidth} exceeds {KKT_BAND_MAX} (use dense)")
         return Schur(G, solve_mass)
-    if kind == "dense" or (kind == "auto" and (shape[0] <= DENSE_MAX or not diagonal)):
+    if kind == "dense" or (kind == "auto" and (shape[0] <= dense_max or not diagonal)):
         return Schur(G, solve_mass)
     if not diagonal:
         raise ValueError(f"linear_solver = {kind!r} needs a constant diagonal mass; "

@@ -53,7 +53,7 @@ from linalg.blocks import Blocks  # noqa: E402
 from linalg.compiled import device_index  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
 from linalg.pattern import traced_sparsity  # noqa: E402
-from linalg.schur import DENSE_KKT_MAX, choose  # noqa: E402
+from linalg.schur import DENSE_KKT_MAX, DENSE_MAX, choose  # noqa: E402
 
 Array = jax.Array
 
@@ -429,25 +429,28 @@ class Mechanics:
             lambda y: self.g(q + blocks.whiten(L, y), t), coloring)(jnp.zeros(self.n))
         return asdex.decompress_data(compressed, coloring)
 
-    def schur(self, kind: str = "auto"):
-        """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`), built once.
+    def schur(self, kind: str = "auto", dense_max: int = DENSE_MAX):
+        """The solver for ``G M^{-1} G^T`` (see :func:`linalg.schur.choose`; ``dense_max``
+        the caller's crossover for ``"auto"``), built once.
 
         A block-diagonal mass reaches the structured solvers whitened: ``G L^{-T}`` with a
         unit mass (:meth:`whitened_values`); a constant one that is not diagonal, the
         augmented system (:mod:`linalg.kkt`)."""
         cache = self.__dict__.setdefault("_schur", {})
-        if kind not in cache:
+        key = (kind, dense_max)
+        if key not in cache:
             if self.mass_blocks is not None:
                 def whitened_pattern():
                     sparsity = self.whitened_coloring.sparsity
                     return np.asarray(sparsity.rows), np.asarray(sparsity.cols)
-                cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
-                                     np.ones(self.n), whitened_pattern, self.whitened_values)
+                cache[key] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
+                                    np.ones(self.n), whitened_pattern, self.whitened_values,
+                                    dense_max=dense_max)
             else:
-                cache[kind] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
-                                     self.mass_diagonal, self.G_pattern, self.G_values,
-                                     self.mass_matrix)
-        return cache[kind]
+                cache[key] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
+                                    self.mass_diagonal, self.G_pattern, self.G_values,
+                                    self.mass_matrix, dense_max)
+        return cache[key]
 
     def gram(self, kind: str = "auto"):
         """The solver for the Gram matrix ``G G^T`` (a unit mass; the stabilised index-2

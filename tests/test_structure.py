@@ -338,6 +338,36 @@ def test_auto_choice_follows_the_structure():
     assert ring.pattern.bandwidth <= 4
 
 
+
+def test_fixed_step_families_name_their_own_crossover():
+    # Newton on a whole stage system is cheaper structured from one constraint up
+    # (benchmarks/perf/crossover.py); RATTLE's separable one-constraint Newton is a
+    # division and stays dense; the other callers keep linalg.schur.DENSE_MAX.
+    import integrators
+
+    def path(key, name):
+        return integrators.make(key).linear_algebra(problems.make(name).mech).name
+
+    for key in ("lobatto3ab3", "genalpha", "genalpha-ggl", "hht"):
+        assert path(key, "pendulum") == "banded", key
+        assert path(key, "rigid-chain:N=1") == "banded", key
+    assert path("rattle", "pendulum") == path("rattle", "sps-receiver") == "dense"
+    # Two constraints, or forces (car-axis), put RATTLE's Newton on the structured path.
+    assert path("rattle", "double-pendulum") == path("rattle", "car-axis") == "banded"
+    # Without a constant diagonal or block-diagonal mass every family stays dense.
+    assert path("lobatto3ab3", "andrews") == path("rattle", "flyball-governor") == "dense"
+    assert problems.make("car-axis").mech.schur().name == "dense"
+
+
+def test_the_crossover_benchmark_compares_both_paths():
+    from benchmarks.perf import crossover
+
+    line = crossover.pair("lobatto3ab3", "pendulum", 0.01, 0.5, 1)
+    assert "dense   ok" in line and "banded  ok" in line and "auto: banded" in line
+    apart = float(line.split("apart ")[1].split()[0])
+    assert apart <= 1e-13
+    assert crossover.pair("rattle", "andrews", 1e-4, 1e-3, 1) is None
+
 @pytest.mark.slow
 def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path():
     _, dense = solve("chain:N=16", "genalpha:linear_solver=dense", 0.2, h=1e-3)

@@ -1,0 +1,122 @@
+"""Benchmark: the dense path against the structured one on small systems, family by family.
+
+For each fixed-step family (``--families``) and small problem (:data:`CASES`), one
+trajectory runs twice: with ``linear_solver=dense`` (Newton with the exact autodiff
+Jacobian of the method's whole system) and with the structured solver that the suite's
+choice by structure takes when it names no crossover (:func:`linalg.schur.choose` with
+``dense_max = 0``: simplified Newton through ``S = G M^{-1} G^T``). Printed per pair: each
+path's status, steps per second, Newton iterations per step and max ``|g|``; the speed
+ratio; the largest difference of the final ``(q, v)`` between the paths (the same method
+and step; round-off apart, grown by the problem's sensitivity over the horizon); and the
+path that ``linear_solver=auto`` takes for that family
+(:meth:`integrators.fixed.FixedStep.dense_max`), with ``faster`` or ``SLOWER``. A pair
+where the problem's mass allows no structured solver is said so and skipped.
+
+What each number is: steps per second over the wall time of ``solve()`` (the compiled
+time loop and the read-back of the trajectory; set-up and compilation excluded), the
+median of ``--repeats`` solves, in this one process set up as the suite's workers are
+(one intra-op thread, :func:`benchmarks.perf.processes.like_a_worker`): one core.
+
+This is the measurement behind the crossovers of the fixed-step families. Exit status 1
+only when a run errs (a failed run is data); bad options: one line and exit status 2.
+
+Usage::
+
+    python -m benchmarks.perf.crossover
+    python -m benchmarks.perf.crossover --families rattle lobatto3ab3 --repeats 5
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from benchmarks.perf.processes import like_a_worker
+from benchmarks.records import CommandParser
+
+#: Families measured by default: every fixed-step family with a ``linear_solver`` option.
+FAMILIES = ("rattle", "lobatto3ab3", "genalpha", "genalpha-ggl", "hht")
+
+#: ``(problem, h, t_end)``: one to eight constraints, constant diagonal masses with and
+#: without applied forces, and a block-diagonal, configuration-dependent one (rigid bodies).
+CASES = (("pendulum", 0.01, 20.0), ("sps-receiver", 0.05, 50.0),
+         ("double-pendulum", 0.01, 10.0), ("car-axis", 1e-3, 3.0),
+         ("chain:N=2", 0.01, 10.0), ("chain:N=4", 0.01, 10.0), ("chain:N=8", 0.01, 10.0),
+         ("rigid-chain:N=2", 0.005, 2.0))
+
+
+def run(case, method, repeats: int):
+    """The trajectory and the median wall time of ``repeats`` solves after the first."""
+    from benchmarks.perf.ensemble import timed
+    from integrators.base import Grid
+
+    solve = method.prepare(case, Grid(case.t0, case.t_end))
+    solve()  # the first solve pays for the loading of the compiled program
+    return timed(solve, repeats)
+
+
+def pair(family: str, problem: str, h: float, t_end: float, repeats: int) -> str | None:
+    """One line comparing the two paths; ``None`` where the mass allows no structured one."""
+    import integrators
+    import problems
+
+    case = problems.make(problem).with_t_end(t_end)
+    mech = case.mech
+    structured = mech.schur("auto", dense_max=0).name
+    if structured == "dense":
+        return None
+    steps = round(t_end / h)
+    out, finals = {}, {}
+    for path in ("dense", structured):
+        seconds, traj = run(case, integrators.make(family, h=h, linear_solver=path), repeats)
+        out[path] = (steps / seconds, traj)
+        finals[path] = np.concatenate([traj.q_final, traj.v_final])
+    auto = integrators.make(family, h=h).linear_algebra(mech).name
+    fast = max(out, key=lambda path: out[path][0])
+    gap = float(np.max(np.abs(finals["dense"] - finals[structured])))
+
+    def show(path):
+        rate, traj = out[path]
+        return (f"{path:7s} {traj.status:6s} {rate:9.3g} steps/s "
+                f"{traj.counts['n_newton'] / steps:5.2f} it/step "
+                f"|g| {float(np.max(traj.windows['pos'])):.1e}")
+
+    return (f"{family:12s} {problem:16s} m={mech.m:<2d} {show('dense')} | {show(structured)} | "
+            f"x{out[structured][0] / out['dense'][0]:5.2f} | apart {gap:.1e} | auto: {auto} "
+            f"({'faster' if auto == fast else 'SLOWER'})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = CommandParser(prog="python -m benchmarks.perf.crossover",
+                           description=__doc__.splitlines()[0])
+    parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES)
+    parser.add_argument("--repeats", type=int, default=3, help="timed solves per path")
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: must be at least 1")
+    like_a_worker()
+    print(f"dense against structured, one trajectory each (1-minute load "
+          f"{os.getloadavg()[0]:.2f}); ratio = structured / dense steps per second",
+          flush=True)
+    errors = 0
+    for family in args.families:
+        for problem, h, t_end in CASES:
+            start = time.perf_counter()
+            try:
+                line = pair(family, problem, h, t_end, args.repeats)
+            except Exception as exc:  # a run that errs is reported, and the rest go on
+                errors += 1
+                print(f"{family:12s} {problem:16s} error: {exc}", flush=True)
+                continue
+            print(line or f"{family:12s} {problem:16s} no structured solver for this mass",
+                  f"[{time.perf_counter() - start:.0f} s]", flush=True)
+    print(f"1-minute load at the end {os.getloadavg()[0]:.2f}")
+    return 1 if errors else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
