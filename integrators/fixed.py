@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from integrators.base import COUNTERS, Failure, Grid, Integrator
 from integrators.loop import WORK, attempt, march
 from linalg.compiled import compile_lifted
+from linalg.schur import DENSE_MAX
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -62,20 +63,23 @@ class FixedStep(Integrator):
 
     def dense_max(self, mech: Mechanics) -> int:
         """The most constraints for which ``linear_solver = "auto"`` keeps the dense path
-        where a structured one could run (:func:`linalg.schur.choose`): none by default.
+        where a structured one could run (:func:`linalg.schur.choose`):
+        :data:`linalg.schur.DENSE_MAX` by default, for methods without a Newton iteration
+        (``baumgarte-rk4``: one solve with ``S`` per stage).
 
-        The dense path runs Newton on the method's whole stage system (positions, momenta
-        and multipliers of every stage) with its exact autodiff Jacobian: ``K`` forward
-        derivatives and an ``O(K^3)`` LU for ``K`` unknowns at every iteration, through
-        LAPACK, which keeps XLA from compiling the time loop into one kernel. The
-        structured path's simplified Newton takes two to five times the iterations, each
-        ``O(n)`` and inside the one kernel. Measured one trajectory at a time
-        (``python -m benchmarks.perf.crossover``, one core): the structured path was the
-        faster on every constant-diagonal and block-diagonal mass tried, from one to eight
-        constraints: 5 to 21 times for lobatto3ab3, 3 to 10 times for the
-        generalized-alpha members (load 0.2 to 1).
+        A method that runs Newton on its whole stage system names its own: none for SPARK
+        and the generalized-alpha members, one separable constraint for RATTLE. On the
+        dense path that Newton has the exact autodiff Jacobian, ``K`` forward derivatives
+        and an ``O(K^3)`` LU for ``K`` unknowns at every iteration, through LAPACK, which
+        keeps XLA from compiling the time loop into one kernel; the structured path's
+        simplified Newton takes two to five times the iterations, each ``O(n)`` and inside
+        the one kernel. Measured one trajectory at a time (``python -m
+        benchmarks.perf.crossover``, one core, load 0.2 to 1): the structured path was
+        the faster on every constant-diagonal and block-diagonal mass tried, from one to
+        eight constraints, 5 to 21 times for lobatto3ab3 and 3 to 10 times for the
+        generalized-alpha members.
         """
-        return 0
+        return DENSE_MAX
 
     def linear_algebra(self, mech: Mechanics):
         """The solver for ``G M^{-1} G^T`` that the steps use (:meth:`Mechanics.schur`,

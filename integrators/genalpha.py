@@ -166,6 +166,11 @@ class AlphaMethod(FixedStep):
 
         return linear, S0.ok & P0.ok if ggl else S0.ok
 
+    def dense_max(self, mech: Mechanics) -> int:
+        """None: Newton on the step equations is cheaper on the structured path from one
+        constraint up (:meth:`integrators.fixed.FixedStep.dense_max`)."""
+        return 0
+
     def linear_algebra(self, mech: Mechanics):
         """The solver for ``S`` (:meth:`integrators.fixed.FixedStep.linear_algebra`) and,
         for the GGL form on a structured path, its Gram solver of the same kind, built

@@ -93,6 +93,11 @@ class LobattoIIIAIIIB(FixedStep):
     def nominal_order(self) -> int:
         return 2 * self.stages - 2
 
+    def dense_max(self, mech: Mechanics) -> int:
+        """None: Newton on the stage system is cheaper on the structured path from one
+        constraint up (:meth:`integrators.fixed.FixedStep.dense_max`)."""
+        return 0
+
     def check(self) -> None:
         super().check()
         if not 2 <= self.stages <= 6:

@@ -45,9 +45,8 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
 ``dense_max`` constraints or a mass that is not a constant diagonal; else ``banded``
 when the bandwidth of the core after reordering is at most
 :data:`linalg.banded.BAND_MAX`, else ``superlu``. ``dense_max`` is the caller's crossover:
-a method that runs Newton on its whole stage system passes its own (the fixed-step
-families, :meth:`integrators.fixed.FixedStep.dense_max`), the others take
-:data:`DENSE_MAX`.
+a method that runs Newton on its whole stage system passes its own
+(:meth:`integrators.fixed.FixedStep.dense_max`), the others take :data:`DENSE_MAX`.
 
 Redundant constraints follow one policy on every path, the basic solution
 (:mod:`linalg.dense`).
@@ -72,7 +71,8 @@ from linalg.sparse import SuperLU
 #: crossover of its own: Baumgarte's index-1 accelerations and the projections (one solve
 #: with ``S`` per evaluation, no Newton iteration), Radau IIA (whose structured iteration
 #: leaves out the force Jacobian that its stiff problems need) and IDA's choice of a sparse
-#: solver. The fixed-step families name theirs (``python -m benchmarks.perf.crossover``).
+#: solver. The fixed-step families that run Newton name theirs
+#: (``python -m benchmarks.perf.crossover``).
 DENSE_MAX = 8
 
 #: Largest number of constraints solved densely by default where the mass is constant but

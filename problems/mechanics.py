@@ -437,7 +437,8 @@ class Mechanics:
         unit mass (:meth:`whitened_values`); a constant one that is not diagonal, the
         augmented system (:mod:`linalg.kkt`)."""
         cache = self.__dict__.setdefault("_schur", {})
-        key = (kind, dense_max)
+        # dense_max decides only whether "auto" may stay dense at this size.
+        key = (kind, kind == "auto" and self.m <= dense_max)
         if key not in cache:
             if self.mass_blocks is not None:
                 def whitened_pattern():

@@ -354,6 +354,10 @@ def test_fixed_step_families_name_their_own_crossover():
     assert path("rattle", "pendulum") == path("rattle", "sps-receiver") == "dense"
     # Two constraints, or forces (car-axis), put RATTLE's Newton on the structured path.
     assert path("rattle", "double-pendulum") == path("rattle", "car-axis") == "banded"
+    # Without a Newton iteration (baumgarte-rk4) the default crossover holds, on a single
+    # run, an ensemble and a Stepper alike (all three ask linear_algebra).
+    assert path("baumgarte-rk4", "chain:N=4") == "dense"
+    assert path("baumgarte-rk4", "chain:N=16") == "banded"
     # Without a constant diagonal or block-diagonal mass every family stays dense.
     assert path("lobatto3ab3", "andrews") == path("rattle", "flyball-governor") == "dense"
     assert problems.make("car-axis").mech.schur().name == "dense"
