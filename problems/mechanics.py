@@ -450,7 +450,7 @@ class Mechanics:
             else:
                 cache[key] = choose(kind, (self.m, self.n), self.G, self.solve_mass,
                                     self.mass_diagonal, self.G_pattern, self.G_values,
-                                    self.mass_matrix, dense_max)
+                                    self.mass_matrix, dense_max=dense_max)
         return cache[key]
 
     def gram(self, kind: str = "auto"):

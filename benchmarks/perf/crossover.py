@@ -29,7 +29,6 @@ Usage::
 from __future__ import annotations
 
 import os
-import statistics
 import sys
 import time
 
