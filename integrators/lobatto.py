@@ -11,7 +11,7 @@ import numpy as np
 
 from integrators.fixed import FixedStep, newton_failure
 from integrators.newton import newton
-from integrators.tableau import lobatto
+from integrators.tableau import combine, lobatto
 from problems.mechanics import Mechanics
 
 
@@ -104,14 +104,15 @@ class LobattoIIIAIIIB(FixedStep):
             raise ValueError(f"LobattoIIIAIIIB: stages = {self.stages} must lie in 2..6")
 
     def tableau(self):
-        """``A``, ``A_hat``, ``b``, ``c`` as arrays and ``B^{-T}`` of the eliminated
-        multiplier system (class notes)."""
+        """``A``, ``A_hat``, ``b`` and ``B^{-1}`` of the eliminated multiplier system (class
+        notes) as constants for :func:`integrators.tableau.combine`, and ``c`` as an array."""
         tab = lobatto(self.stages)
-        A, Ah, b, c = (jnp.asarray(x) for x in (tab.A, tab.A_hat, tab.b, tab.c))
+        A, Ah, b = tab.A, tab.A_hat, tab.b
+        c = jnp.asarray(tab.c)
         # Rows of the eliminated multiplier system, divided by h^2 (position constraints
         # at stages 2..s) and by h (the velocity constraint): B = [(A A_hat)[1:]; b].
-        B_inv_T = jnp.asarray(np.linalg.inv(np.vstack([(tab.A @ tab.A_hat)[1:], tab.b])).T)
-        return A, Ah, b, c, B_inv_T
+        B_inv = np.linalg.inv(np.vstack([(tab.A @ tab.A_hat)[1:], tab.b]))
+        return A, Ah, b, c, B_inv
 
     def unpack(self, mech: Mechanics, z):
         """Stage positions, stage momenta, stage multipliers and ``p1`` from the unknowns."""
@@ -124,7 +125,7 @@ class LobattoIIIAIIIB(FixedStep):
     def simplified(self, mech: Mechanics, schur, q0, t, h, S0):
         """Simplified Newton's correction for the stage system (see the class notes)."""
         s, n, m = self.stages, mech.n, mech.m
-        A, Ah, b, c, B_inv_T = self.tableau()
+        A, Ah, b, c, B_inv = self.tableau()
         Minv = jax.vmap(lambda x: mech.solve_mass(q0, x))
         weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
 
@@ -136,7 +137,7 @@ class LobattoIIIAIIIB(FixedStep):
             # varies over the step.
             GQ = jax.vmap(mech.G_times)
             GQT = jax.vmap(mech.GT)
-            q1 = q0 + h * b @ Minv(P)
+            q1 = q0 + h * combine(b, Minv(P))
             RQ = r[: s * n].reshape(s, n)
             RP = r[s * n: 2 * s * n].reshape(s, n)
             Rp = r[2 * s * n: 2 * s * n + n]
@@ -144,13 +145,13 @@ class LobattoIIIAIIIB(FixedStep):
             Rv = r[2 * s * n + n + (s - 1) * m:]
             MinvRP = Minv(RP)
             rhs = jnp.concatenate([
-                Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * A[1:] @ MinvRP),
+                Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * combine(A[1:], MinvRP)),
                 (Rv - mech.G_times(q1, t + h, mech.solve_mass(q0, Rp)))[None],
             ]) * weights[:, None]                                   # (s, m)
-            dLam = (schur.solve(S0, rhs.T) @ B_inv_T).T              # (s, m)
-            dP = -RP - h * Ah @ GQT(Q, ts, dLam)
-            dQ = -RQ + h * A @ Minv(dP)
-            dp1 = -Rp - h * b @ GQT(Q, ts, dLam)
+            dLam = combine(B_inv, schur.solve(S0, rhs.T).T)           # (s, m)
+            dP = -RP - h * combine(Ah, GQT(Q, ts, dLam))
+            dQ = -RQ + h * combine(A, Minv(dP))
+            dp1 = -Rp - h * combine(b, GQT(Q, ts, dLam))
             dz = jnp.concatenate([dQ.ravel(), dP.ravel(), dLam.ravel(), dp1])
             return dz, jnp.max(jnp.abs(z))
 
@@ -176,11 +177,11 @@ class LobattoIIIAIIIB(FixedStep):
             ts = t + c * h
             U = (-jax.vmap(mech.H_q)(Q, P) + jax.vmap(mech.external)(ts, Q, V)
                  - jax.vmap(mech.GT)(Q, ts, Lam))
-            q1 = q0 + h * b @ V
+            q1 = q0 + h * combine(b, V)
             return jnp.concatenate([
-                (Q - q0 - h * A @ V).ravel(),
-                (P - p0 - h * Ah @ U).ravel(),
-                p1 - p0 - h * b @ U,
+                (Q - q0 - h * combine(A, V)).ravel(),
+                (P - p0 - h * combine(Ah, U)).ravel(),
+                p1 - p0 - h * combine(b, U),
                 jax.vmap(mech.g)(Q[1:], ts[1:]).ravel(),
                 mech.vel_residual(q1, mech.H_p(q1, p1), t + h),
             ])
@@ -194,7 +195,7 @@ class LobattoIIIAIIIB(FixedStep):
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter,
                          self.simplified(mech, schur, q0, t, h, S0))
         Q, P, Lam, p1 = self.unpack(mech, sol.z)
-        q1 = q0 + h * b @ jax.vmap(mech.H_p)(Q, P)
+        q1 = q0 + h * combine(b, jax.vmap(mech.H_p)(Q, P))
         if not dense:
             S1 = schur.factor(q1, t + h)   # the next step's S_0
             ok, jac = S0.ok, 1
