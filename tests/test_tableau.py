@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import independent as ind
-from integrators.tableau import TABLEAU_TOL, LobattoTableau, lobatto
+from integrators.tableau import TABLEAU_TOL, LobattoTableau, combine, lobatto
 
 
 @pytest.mark.parametrize("s", [2, 3, 4])
@@ -43,3 +43,18 @@ def test_corrupted_tableau_is_refused():
     A_hat[1, 1] -= 1e-6
     with pytest.raises(ValueError, match="symplecticity"):
         LobattoTableau(3, t.c, t.b, t.b_hat, t.A, A_hat)
+
+
+@pytest.mark.parametrize("s", [2, 3, 4])
+def test_combine_is_the_tableau_product(s):
+    """The sums of scaled stage values that the SPARK step uses equal the matrix products,
+    zero rows (Lobatto IIIA's first) and zero columns (IIIB's last) included, for stage
+    values of any trailing shape."""
+    t = lobatto(s)
+    X = np.random.default_rng(s).standard_normal((s, 5, 2))
+    for coefficients in (t.A, t.A_hat, t.A[1:], t.b):
+        out = np.asarray(combine(coefficients, X))
+        exact = np.tensordot(coefficients, X, axes=1)
+        assert out.shape == exact.shape
+        assert np.max(np.abs(out - exact)) <= 1e-15 * s * np.max(np.abs(X))
+    assert not np.any(np.asarray(combine(t.A, X))[0])
