@@ -108,8 +108,11 @@ The mass is given through the kinetic energy (``System.kinetic``),
     T(q, v) = \\sum_k \\tfrac12 m_b |x_k'|^2 + \\tfrac12 e_k'^T \\big(4 E(e_k)^T J E(e_k) +
     4 j_0 e_k e_k^T\\big) e_k',
 
-body by body, so ``M`` is never formed: its block-diagonal pattern is traced from ``T``,
-its blocks are factorised one by one and the structured linear algebra runs on
+body by body. It is evaluated as ``m_b |x_k'|^2 / 2 + 2 (E e_k')^T J (E e_k') + 2 j_0 (e_k .
+e_k')^2``, the same form without the 4 x 4 block: the suite differentiates ``T`` at every
+evaluation of ``H_q``, and through the block that took 0.59 us per body, without it 0.16 us
+(rigid-chain:N=4096, one core). ``M`` is never formed: its block-diagonal pattern is traced
+from ``T``, its blocks are factorised one by one and the structured linear algebra runs on
 ``G L^{-T}`` (:mod:`linalg.blocks`), with cost linear in ``N``.
 """
 
@@ -122,7 +125,7 @@ import numpy as np
 from problems import register
 from problems.case import Case, make_case
 from problems.mechanics import System
-from problems.rigid_body import E_matrix, quat_mul, quaternion_mass, rotation
+from problems.rigid_body import E_matrix, quat_mul, rotation
 
 #: Azimuth and self-rotation increments (rad per body) of the initial helix.
 PHI_STEP, PSI_STEP = 0.9, 0.4
@@ -179,8 +182,10 @@ def rigid_chain(N: int = 4, mass: float = 1.0, half_length: float = 0.5, J1: flo
 
     def kinetic(q, v):
         e, xd, ed = q.reshape(N, 7)[:, 3:], v.reshape(N, 7)[:, :3], v.reshape(N, 7)[:, 3:]
-        quat = jax.vmap(quaternion_mass, in_axes=(0, None, None))(e, Jd, j0)
-        return 0.5 * m_b * jnp.sum(xd * xd) + 0.5 * jnp.einsum("ki,kij,kj->", ed, quat, ed)
+        half_omega = jnp.einsum("kij,kj->ki", jax.vmap(E_matrix)(e), ed)
+        along = jnp.sum(e * ed, axis=1)
+        return (0.5 * m_b * jnp.sum(xd * xd) + 2.0 * jnp.sum(Jd * half_omega * half_omega)
+                + 2.0 * j0 * jnp.sum(along * along))
 
     def constraints(q, t):
         b = q.reshape(N, 7)
