@@ -157,16 +157,23 @@ class Banded(Schur):
         self.core, self.border, self.inverse, self.cols = (
             device_index(a) for a in (pattern.core, pattern.border, pattern.inverse, pattern.cols))
         self.dinv = jnp.asarray(1.0 / mass_diagonal)
+        # A unit mass (a whitened block-diagonal one: Mechanics.schur) needs no scaling.
+        self.unit = bool(np.all(np.asarray(mass_diagonal) == 1.0))
 
     def factor(self, q, t) -> Factor:
         pat = self.pattern
-        first, second, core_entries, core_cols, border_index = self.gathers
+        band, place, core_entries, core_cols, border_index = self.gathers
         w, mc, nb = pat.bandwidth, len(pat.core), len(pat.border)
         Gx = jnp.concatenate([self.G_values(q, t), jnp.zeros(1)])
         # 1 / M_jj of each entry's column: both entries of a pair share it.
-        dx = jnp.concatenate([gather(self.dinv, self.cols), jnp.zeros(1)])
-        Sb = jnp.sum(gather(Gx, first) * gather(Gx, second) * gather(dx, first), axis=1)
-        Sb = Sb.reshape(mc, w + 1)
+        dx = None if self.unit else jnp.concatenate([gather(self.dinv, self.cols), jnp.zeros(1)])
+        sums = []
+        for first, second in band:
+            products = gather(Gx, first) * gather(Gx, second)
+            if dx is not None:
+                products = products * gather(dx, first)
+            sums.append(jnp.sum(products, axis=1))
+        Sb = gather(jnp.concatenate(sums + [jnp.zeros(1)]), place).reshape(mc, w + 1)
         Dc = unit_diagonal(Sb[:, 0])
         shifted = jnp.stack([jnp.concatenate([jnp.zeros(k), Dc[:mc - k]]) for k in range(w + 1)], 1)
         Ss = Sb * Dc[:, None] * shifted

@@ -195,8 +195,16 @@ class Pattern:
     @cached_property
     def gathers(self):
         """Index arrays (``int32``) that assemble the band of ``S`` and the border blocks by
-        gathers: ``first`` and ``second`` (band slots by pairs), the core rows of ``G``
-        padded (entries and columns) and the border rows of ``G`` dense."""
+        gathers: ``band``, a ``(first, second)`` pair of ``(slots, d)`` arrays for each
+        number ``d`` of terms a band slot sums, and ``place``, where each slot's sum lands
+        among theirs (an empty slot on a zero appended after them); the core rows of ``G``
+        padded (entries and columns); the border rows of ``G`` dense.
+
+        Slots are grouped by their number of terms rather than all padded to the largest:
+        the index arrays then hold the pairs themselves. Padded, those of rigid-chain:N=16384
+        took 37 MB (43 % of it padding) and its assembly 0.81 us per body, against 0.32 us
+        at N = 1024, where they fit in the cache; ``sps-lattice:N=16,K=8`` was 0.6 % pairs.
+        """
         m, n, w = self.m, self.n, self.bandwidth
         mc = len(self.core)
         position = np.full(m, -1)
@@ -224,6 +232,13 @@ class Pattern:
         rank = np.arange(len(slot)) - np.repeat(np.cumsum(per_slot) - per_slot, per_slot)
         pairs[0, slot[by_slot], rank] = first[by_slot]
         pairs[1, slot[by_slot], rank] = second[by_slot]
+        band, place, start = [], np.empty(mc * (w + 1), dtype=np.int64), 0
+        for d in np.unique(per_slot[per_slot > 0]):
+            slots = np.flatnonzero(per_slot == d)
+            band.append(tuple(device_index(pairs[i, slots, :d]) for i in (0, 1)))
+            place[slots] = start + np.arange(len(slots))
+            start += len(slots)
+        place[per_slot == 0] = start
         # Core rows of G, padded (for S_cb = G_c M^{-1} G_b^T).
         row_counts = np.bincount(position[self.rows][position[self.rows] >= 0], minlength=mc)
         width = max(1, int(row_counts.max(initial=0)))
@@ -242,7 +257,7 @@ class Pattern:
         where[self.border] = np.arange(len(self.border))
         e_border = np.flatnonzero(where[self.rows] >= 0)
         border_index[where[self.rows[e_border]], self.cols[e_border]] = e_border
-        return tuple(device_index(a) for a in (
-            pairs[0], pairs[1], core_entries, core_cols, border_index))
+        return (tuple(band), *(device_index(a) for a in (
+            place, core_entries, core_cols, border_index)))
 
 

@@ -38,10 +38,16 @@ What runs
     steps: the RATTLE step of ``rattle`` for a separable Hamiltonian (exact Newton on the
     N multipliers with rattle's convergence test and tolerance, each iteration one
     tridiagonal Thomas solve; the velocity projection, another), and the same per-step
-    measurement of ``|g|``, ``|G v|``, ``|H - H0|`` into per-window maxima. It is compiled
-    here (``cc`` or ``gcc`` from ``PATH``, ``-O2``); without a compiler it is skipped with a
-    message. ``rattle`` and C must end in the same state (:data:`AGREE_Q`,
-    :data:`AGREE_V`).
+    measurement of ``|g|``, ``|G v|``, ``|H - H0|`` into per-window maxima. At each
+    rigid-chain N ``yardstick/rattle_rigid_chain.c`` runs the step ``rattle`` takes there on
+    its structured path (simplified Newton on ``(p_half, q_1, lambda)`` with ``S`` frozen at
+    ``q_0``, rattle's stopping rule and tolerance, the velocity projection; ``M^{-1}``, ``T_q``
+    and ``G`` in closed form, ``S`` factorised by 4 x 4 block Cholesky) with the same
+    measurement: what the same arithmetic costs in plain C, against which the per-body bar
+    can be read (:func:`bars`). Both are compiled here (``cc`` or ``gcc`` from ``PATH``,
+    ``-O2``); without a compiler they are skipped with a message. ``rattle`` and C must end
+    in the same state (:data:`AGREE_Q`, :data:`AGREE_V`, relative to the larger of 1 and the
+    state's max-norm).
 
     Newton's tolerance on the chain is relative to the size of its constraints: ``g_k =
     |x_k - x_{k-1}|^2 - l^2`` with ``l = 1/N``, so rattle's absolute default of 1e-16 would
@@ -147,11 +153,16 @@ MIN_TIMED, MAX_REPEATS = 0.2, 50
 REPEAT_BUDGET = 10.0
 #: Smallest N of the exponent fit where at least two points reach it.
 FIT_FROM = 1024
-#: Agreement of C and rattle at the end of a run (max-norm). Both iterate Newton to the same
-#: tolerance; on chain:N=8 over 300 steps of h = 1e-3 they end 6e-16 (q) and 1.3e-14 (v)
-#: apart. Gravity off by 0.1 % moves q by 5e-9 and v by 1e-5 over 100 steps of 1e-5.
+#: Agreement of C and rattle at the end of a run (max-norm, relative to the larger of 1 and
+#: the state's max-norm: the rigid chain's coordinates grow like N). Both iterate Newton to
+#: the same tolerance; on chain:N=8 over 300 steps of h = 1e-3 they end 6e-16 (q) and
+#: 1.3e-14 (v) apart, on rigid-chain:N=1024 over 100 steps of 5e-4 8.1e-16 and 3.4e-13
+#: relative. Gravity off by 0.1 % moves q by 5e-9 and v by 1e-5 over 100 steps of 1e-5.
 AGREE_Q, AGREE_V = 1e-12, 1e-10
 C_NAME = "C"
+#: The C yardstick of each problem that has one, and the linear solver it runs.
+YARDSTICKS = {"chain": ("rattle_chain", "tridiagonal (Thomas)"),
+              "rigid-chain": ("rattle_rigid_chain", "block tridiagonal (4 x 4 block Cholesky)")}
 
 #: The bars of the scaling issue.
 RATIO_BAR, RATIO_SIZES = 10.0, (1024, 16384)
@@ -275,7 +286,8 @@ CHILD = "import sys; from benchmarks.perf.scaling import point_main; sys.exit(po
 
 
 def newton_tol(problem: str, n: int, settings: dict) -> float | None:
-    """Newton's tolerance at a point: relative to ``l^2 = 1/N^2`` on the chain (see above)."""
+    """Newton's tolerance at a point: relative to ``l^2 = 1/N^2`` on the chain (see above),
+    the method's own elsewhere (None)."""
     return settings["newton_tol"] / n ** 2 if problem == "chain" else None
 
 
@@ -310,10 +322,13 @@ def run_family(problem: str, n: int, family: str, settings: dict, env: dict,
     return point
 
 
-def run_yardstick(exe: Path, n: int, settings: dict) -> tuple[Point, np.ndarray | None]:
-    """The C yardstick on chain:N, ``repeats`` runs; the point and its final ``(q, v)``."""
-    h, steps, tol = settings["h"]["chain"], settings["steps"], newton_tol("chain", n, settings)
-    point = Point("chain", n, C_NAME, "ok", linear_solver="tridiagonal (Thomas)")
+def run_yardstick(exe: Path, problem: str, n: int, settings: dict
+                  ) -> tuple[Point, np.ndarray | None]:
+    """The C yardstick of ``problem`` at N, ``repeats`` runs; the point and its final
+    ``(q, v)``."""
+    h, steps = settings["h"][problem], settings["steps"]
+    tol = newton_tol(problem, n, settings) or settings["newton_tol"]
+    point = Point(problem, n, C_NAME, "ok", linear_solver=YARDSTICKS[problem][1])
     walls, cpus, state = [], [], None
     start = time.perf_counter()
     while more(walls, settings["repeats"]):
@@ -438,6 +453,19 @@ def arithmetic(num: Point | None, den: Point | None) -> str:
             f"(XLA's count), {per_iteration:.3g}x the time per Newton iteration")
 
 
+def in_c(rigid: tuple, c: tuple) -> str:
+    """The per-body bar read against plain C: the C yardsticks' own ratio of time per body
+    (rigid-chain) to time per link (chain) at the same N, and how far rattle is from C on
+    each problem; empty where a point is missing."""
+    if any(p is None or p.status != "ok" for p in (*rigid, *c)):
+        return ""
+    own = c[0].wall_per_step / c[1].wall_per_step
+    return (f"; the same steps in plain C: {own:.3g}x per body over per link"
+            + (" (the bar is below what C reaches)" if own > RIGID_PER_BODY else "")
+            + f", rattle over C {rigid[0].wall_per_step / c[0].wall_per_step:.3g}x on the "
+              f"rigid chain and {rigid[1].wall_per_step / c[1].wall_per_step:.3g}x on the chain")
+
+
 def _memory_bar(name: str, point: Point | None, label: str, limit: int) -> dict:
     """A bar on a finished point's peak resident set."""
     if point is None or point.status != "ok":
@@ -486,7 +514,9 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
         f"per link on chain:N={RIGID_SIZE}", rigid,
         (f"rattle on rigid-chain at N={RIGID_SIZE}", f"rattle on chain at N={RIGID_SIZE}"),
         RIGID_PER_BODY, "x")
-    out.append({**bar, "value": bar["value"] + arithmetic(*rigid)})
+    c = (_find(points, "rigid-chain", C_NAME, RIGID_SIZE),
+         _find(points, "chain", C_NAME, RIGID_SIZE))
+    out.append({**bar, "value": bar["value"] + arithmetic(*rigid) + in_c(rigid, c)})
     for family in settings["families"] if "rigid-chain" in settings["problems"] else ():
         out.append(_memory_bar(
             f"{family} on rigid-chain:N={RIGID_SIZE}: peak memory < {RIGID_MEMORY / 2**30:g} GiB",
@@ -525,8 +555,12 @@ def ring_bars(points: list[Point], settings: dict) -> list[dict]:
 
 
 def agreement(c_state: np.ndarray, rattle_state: np.ndarray) -> tuple[bool, float, float]:
-    """Whether C and rattle end in the same ``(q, v)``; the two max-norm differences."""
+    """Whether C and rattle end in the same ``(q, v)``; the two max-norm differences, each
+    relative to the larger of 1 and C's max-norm of ``q`` (of ``v``)."""
     dq, dv = state_difference(c_state, rattle_state)
+    half = len(c_state) // 2
+    dq /= max(1.0, float(np.max(np.abs(c_state[:half]))))
+    dv /= max(1.0, float(np.max(np.abs(c_state[half:]))))
     return dq <= AGREE_Q and dv <= AGREE_V, dq, dv
 
 
@@ -670,17 +704,19 @@ def main(argv: list[str] | None = None) -> int:
     print("baseline: a process that imports the suite and computes once peaks at "
           + ("? (no /proc)" if baseline is None else f"{baseline / 2**20:.0f} MiB resident"))
     with tempfile.TemporaryDirectory() as tmp:
-        exe, note, c_failed = (compile_yardstick("rattle_chain", Path(tmp))
-                               if "chain" in settings["problems"]
-                               else (None, "not used (no chain in this run)", False))
-        print(f"C yardstick: {note}")
-        ok &= not c_failed
+        exes, notes = {}, {}
+        for problem in settings["problems"]:
+            if problem in YARDSTICKS:
+                exes[problem], notes[problem], c_failed = compile_yardstick(
+                    YARDSTICKS[problem][0], Path(tmp))
+                print(f"C yardstick of {problem}: {notes[problem]}")
+                ok &= not c_failed
         for problem in settings["problems"]:
             stopped: dict[str, Point] = {}
             for n in settings["n"]:
                 c_point = c_state = None
-                if problem == "chain" and exe is not None:
-                    c_point, c_state = run_yardstick(exe, n, settings)
+                if exes.get(problem) is not None:
+                    c_point, c_state = run_yardstick(exes[problem], problem, n, settings)
                     points.append(c_point)
                     ok &= c_point.status != "error"
                 for family in settings["families"]:
@@ -689,7 +725,7 @@ def main(argv: list[str] | None = None) -> int:
                         points.append(Point(problem, n, family, "not run",
                                             f"stopped at N={first.n}: {first.status}"))
                         continue
-                    state = Path(tmp) / f"rattle-{n}.npy" if c_state is not None \
+                    state = Path(tmp) / f"rattle-{problem}-{n}.npy" if c_state is not None \
                         and family == "rattle" else None
                     point = run_family(problem, n, family, settings, env, state)
                     points.append(point)
@@ -705,15 +741,16 @@ def main(argv: list[str] | None = None) -> int:
                         point.ratio_c_cpu = point.cpu_per_step / c_point.cpu_per_step
                     if state is not None and point.status == "ok":
                         agree, dq, dv = agreement(c_state, np.load(state))
-                        agreements.append({"n": n, "agree": agree, "dq": dq, "dv": dv})
+                        agreements.append({"problem": problem, "n": n, "agree": agree,
+                                           "dq": dq, "dv": dv})
                         ok &= agree
     load_after = os.getloadavg()[0]
     for problem in settings["problems"]:
         print_table(points, problem)
-    print("\nC and rattle at the end of each chain run (max-norm; agree when |dq| <= "
-          f"{AGREE_Q:g} and |dv| <= {AGREE_V:g}):")
+    print("\nC and rattle at the end of each run with a C yardstick (max-norm relative to "
+          f"max(1, |state|); agree when |dq| <= {AGREE_Q:g} and |dv| <= {AGREE_V:g}):")
     for a in agreements:
-        print(f"  N={a['n']}: |dq| {a['dq']:.2e}, |dv| {a['dv']:.2e}: "
+        print(f"  {a['problem']}:N={a['n']}: |dq| {a['dq']:.2e}, |dv| {a['dv']:.2e}: "
               f"{'agree' if a['agree'] else 'DISAGREE'}")
     if not agreements:
         print("  not compared (no finished pair)")
@@ -723,13 +760,15 @@ def main(argv: list[str] | None = None) -> int:
     for f in fitted:
         exponent = "n/a (fewer than two finished points)" if f["exponent"] is None else \
             f"{f['exponent']:.2f} over N = {', '.join(map(str, f['n']))}"
-        print(f"  {f['problem']:<9} {f['family']:<14} {exponent}")
+        print(f"  {f['problem']:<11} {f['family']:<14} {exponent}")
     verdicts = bars(points, settings)
     print("\nbars:")
     for b in verdicts:
         print(f"  {b['verdict']:<12} {b['bar']}: {b['value']}")
     print(f"\n1-minute load average {load_before:.2f} before, {load_after:.2f} after")
-    data = {"settings": {**settings, "c_yardstick": note, "fit_from": FIT_FROM},
+    data = {"settings": {**settings, "c_yardstick": "; ".join(
+                f"{problem}: {note}" for problem, note in notes.items()) or "not used",
+                         "fit_from": FIT_FROM},
             "machine": {"node": platform.node(), "cpus": os.cpu_count(),
                         "processor": platform.processor() or platform.machine(),
                         "python": platform.python_version()},
