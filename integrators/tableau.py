@@ -80,7 +80,6 @@ def lobatto(s: int) -> LobattoTableau:
     return LobattoTableau(s, c, b, b_hat, A, A_hat)
 
 
-
 def combine(A: np.ndarray, X):
     """``A @ X`` for constant coefficients ``A`` (a tableau's matrix, shape ``(r, s)``, or
     its weights, ``(s,)``) and stage values ``X`` (leading axis the ``s`` stages), written

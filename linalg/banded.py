@@ -166,7 +166,7 @@ class Banded(Schur):
         w, mc, nb = pat.bandwidth, len(pat.core), len(pat.border)
         Gx = jnp.concatenate([self.G_values(q, t), jnp.zeros(1)])
         # 1 / M_jj of each entry's column: both entries of a pair share it.
-        dx = None if self.unit else jnp.concatenate([gather(self.dinv, self.cols), jnp.zeros(1)])
+        dx = None if self.unit else gather(self.dinv, self.cols)
         sums = []
         for first, second in band:
             products = gather(Gx, first) * gather(Gx, second)

@@ -202,14 +202,14 @@ class Pattern:
 
         Slots are grouped by their number of terms rather than all padded to the largest:
         the index arrays then hold the pairs themselves. Padded, those of rigid-chain:N=16384
-        took 37 MB (43 % of it padding) and its assembly 0.81 us per body, against 0.32 us
-        at N = 1024, where they fit in the cache; ``sps-lattice:N=16,K=8`` was 0.6 % pairs.
+        took 37 MB (57 % of it padding) and its assembly 0.81 us per body, against 0.32 us
+        at N = 1024, where they fit in the cache.
         """
         m, n, w = self.m, self.n, self.bandwidth
         mc = len(self.core)
         position = np.full(m, -1)
         position[self.core] = np.arange(mc)
-        sentinel = self.nnz  # index of an appended zero
+        sentinel = self.nnz  # index of an appended zero (the padded core rows below)
         # Band slots: every pair of core entries sharing a column contributes
         # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)). The pairs of a
         # column are listed e1-major, the columns in ascending order and the entries of a
@@ -226,19 +226,18 @@ class Pattern:
         keep = p1 >= p2
         first, second, slot = first[keep], second[keep], (p1 * (w + 1) + (p1 - p2))[keep]
         per_slot = np.bincount(slot, minlength=mc * (w + 1))
-        depth = max(1, int(per_slot.max(initial=0)))
-        pairs = np.full((2, mc * (w + 1), depth), sentinel, dtype=np.int32)
+        # The pairs slot by slot, each slot's in the order listed; slot s's are at
+        # start[s] .. start[s] + per_slot[s] - 1.
         by_slot = np.argsort(slot, kind="stable")
-        rank = np.arange(len(slot)) - np.repeat(np.cumsum(per_slot) - per_slot, per_slot)
-        pairs[0, slot[by_slot], rank] = first[by_slot]
-        pairs[1, slot[by_slot], rank] = second[by_slot]
-        band, place, start = [], np.empty(mc * (w + 1), dtype=np.int64), 0
+        start = np.cumsum(per_slot) - per_slot
+        band, place, done = [], np.empty(mc * (w + 1), dtype=np.int64), 0
         for d in np.unique(per_slot[per_slot > 0]):
             slots = np.flatnonzero(per_slot == d)
-            band.append(tuple(device_index(pairs[i, slots, :d]) for i in (0, 1)))
-            place[slots] = start + np.arange(len(slots))
-            start += len(slots)
-        place[per_slot == 0] = start
+            at = by_slot[start[slots][:, None] + np.arange(d)[None, :]]
+            band.append((device_index(first[at]), device_index(second[at])))
+            place[slots] = done + np.arange(len(slots))
+            done += len(slots)
+        place[per_slot == 0] = done
         # Core rows of G, padded (for S_cb = G_c M^{-1} G_b^T).
         row_counts = np.bincount(position[self.rows][position[self.rows] >= 0], minlength=mc)
         width = max(1, int(row_counts.max(initial=0)))

@@ -411,18 +411,21 @@ class Mechanics:
     @cached_property
     def whitened_coloring(self) -> asdex.ColoredPattern:
         """The pattern of ``G L^{-T}`` (``M = L L^T`` blockwise: :attr:`mass_blocks`) and a
-        colouring of its columns: ``G``'s pattern with each entry spread over its block.
+        colouring of it: ``G``'s pattern with each entry spread over its block.
 
-        Columns, for forward derivatives, even where rows would need fewer colours: the
-        reverse derivative of the blockwise ``L^{-T}`` turns its gathers into scatter-adds,
-        slow on XLA:CPU. On rigid-chain:N=4096 the entries took 1.07 us per body by 7
-        reverse derivatives and 0.47 us by 10 forward ones (one core).
+        Columns (forward derivatives) unless rows need fewer than a third as many colours:
+        the reverse derivative of the blockwise ``L^{-T}`` turns its gathers into
+        scatter-adds, slow on XLA:CPU. On rigid-chain:N=4096 the entries took 1.07 us per
+        body by 7 reverse derivatives and 0.47 us by 10 forward ones (one core). A row of
+        ``G`` on every coordinate (a hub) needs a colour per column forward, one reverse.
         """
         rows, cols = self.mass_blocks.spread(*self.G_pattern())
         pattern = asdex.SparsityPattern.from_coo(rows, cols, (self.m, self.n))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", asdex.DenseColoringWarning)
-            return asdex.jacobian_coloring_from_sparsity(pattern, mode="fwd")
+            forward, reverse = (asdex.jacobian_coloring_from_sparsity(pattern, mode=mode)
+                                for mode in ("fwd", "rev"))
+        return forward if forward.num_colors <= 3 * reverse.num_colors else reverse
 
     def whitened_values(self, q: Array, t: Array) -> Array:
         """The entries of ``G(q, t) L(q)^{-T}`` in the order of :attr:`whitened_coloring`,

@@ -29,7 +29,7 @@ Block diagonal and configuration dependent, one 7 x 7 block per body:
     M_k(e_k) = \\begin{pmatrix} m_b I_3 & 0 \\\\ 0 & 4 E(e_k)^T J E(e_k) + 4 j_0\\,
     e_k e_k^T \\end{pmatrix}, \\qquad j_0 = (J_1 + J_2 + J_3) / 3,
 
-the quaternion block exactly as :mod:`problems.rigid_body` builds it: ``4 E^T J E`` has
+the same quaternion block as :mod:`problems.rigid_body`'s: ``4 E^T J E`` has
 rank 3 (``E e = 0``), and the added ``4 j_0 e e^T`` makes it positive definite without
 changing the motion on the manifold (``e . e' = 0`` there, and its force lies along the
 normal of the unit-norm constraint, where the multiplier absorbs it).

@@ -1,4 +1,4 @@
-"""The scaling benchmark: its C yardstick against rattle, the exponent fit, the bars, the
+"""The scaling benchmark: its C yardsticks against rattle, the exponent fit, the bars, the
 child processes (time limit, peak memory) and the command line."""
 
 import json

@@ -133,10 +133,14 @@ def compile_yardstick(name: str, workdir: Path) -> tuple[Path | None, str, bool]
     return exe, f"{' '.join(command)}  [{version.splitlines()[0] if version else compiler}]", False
 
 
-def state_difference(c_state, state) -> tuple[float, float]:
+def state_difference(c_state, state, relative: bool = False) -> tuple[float, float]:
     """Max-norm differences of the final positions and of the final velocities of a C
-    yardstick and of ours, each given as the stacked ``(q, v)``."""
+    yardstick and of ours, each given as the stacked ``(q, v)``; with ``relative``, each
+    divided by the larger of 1 and the C state's max-norm of ``q`` (of ``v``)."""
     c_state, state = np.asarray(c_state, float), np.asarray(state, float)
     half = len(c_state) // 2
-    return (float(np.max(np.abs(c_state[:half] - state[:half]))),
-            float(np.max(np.abs(c_state[half:] - state[half:]))))
+    out = []
+    for c, ours in ((c_state[:half], state[:half]), (c_state[half:], state[half:])):
+        scale = max(1.0, float(np.max(np.abs(c)))) if relative else 1.0
+        out.append(float(np.max(np.abs(c - ours))) / scale)
+    return out[0], out[1]

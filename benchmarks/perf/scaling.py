@@ -101,7 +101,7 @@ Writes ``scaling.json`` (settings, machine, load, points, fits, bars), ``scaling
 (one row per point) and the report section (``scaling.md``, ``scaling.html``,
 ``figures/scaling.svg``; ``python -m reports --scaling DIR`` adds it to the main report)
 under ``--out``. Exit status 1 only when something did not run as it should (a point that
-errs for a reason other than time or memory, the C yardstick not compiling, C and rattle
+errs for a reason other than time or memory, a C yardstick not compiling, C and rattle
 disagreeing); a missed bar is not an error. Bad options: one line and exit status 2.
 
 Usage::
@@ -161,7 +161,7 @@ FIT_FROM = 1024
 AGREE_Q, AGREE_V = 1e-12, 1e-10
 C_NAME = "C"
 #: The C yardstick of each problem that has one, and the linear solver it runs.
-YARDSTICKS = {"chain": ("rattle_chain", "tridiagonal (Thomas)"),
+C_YARDSTICKS = {"chain": ("rattle_chain", "tridiagonal (Thomas)"),
               "rigid-chain": ("rattle_rigid_chain", "block tridiagonal (4 x 4 block Cholesky)")}
 
 #: The bars of the scaling issue.
@@ -328,7 +328,7 @@ def run_yardstick(exe: Path, problem: str, n: int, settings: dict
     ``(q, v)``."""
     h, steps = settings["h"][problem], settings["steps"]
     tol = newton_tol(problem, n, settings) or settings["newton_tol"]
-    point = Point(problem, n, C_NAME, "ok", linear_solver=YARDSTICKS[problem][1])
+    point = Point(problem, n, C_NAME, "ok", linear_solver=C_YARDSTICKS[problem][1])
     walls, cpus, state = [], [], None
     start = time.perf_counter()
     while more(walls, settings["repeats"]):
@@ -337,8 +337,9 @@ def run_yardstick(exe: Path, problem: str, n: int, settings: dict
                                                                         else [])
         ending, stdout, stderr, _ = run_process(command, settings["limit"], dict(os.environ))
         if ending:
-            # Exit status 1 is the yardstick's own failure report (Newton, or no memory for
-            # the arrays); anything else (2: arguments it refused, a signal) is a defect.
+            # Exit status 1 is the yardstick's own failure report (Newton, a singular
+            # factorisation, or no memory for the arrays); anything else (2: arguments it
+            # refused, a signal) is a defect.
             point.status = ("timeout" if ending == "timeout" else
                             "out of memory" if memory_exhausted(stderr) else
                             "failed" if ending == "exit code 1" else "error")
@@ -557,10 +558,7 @@ def ring_bars(points: list[Point], settings: dict) -> list[dict]:
 def agreement(c_state: np.ndarray, rattle_state: np.ndarray) -> tuple[bool, float, float]:
     """Whether C and rattle end in the same ``(q, v)``; the two max-norm differences, each
     relative to the larger of 1 and C's max-norm of ``q`` (of ``v``)."""
-    dq, dv = state_difference(c_state, rattle_state)
-    half = len(c_state) // 2
-    dq /= max(1.0, float(np.max(np.abs(c_state[:half]))))
-    dv /= max(1.0, float(np.max(np.abs(c_state[half:]))))
+    dq, dv = state_difference(c_state, rattle_state, relative=True)
     return dq <= AGREE_Q and dv <= AGREE_V, dq, dv
 
 
@@ -706,9 +704,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         exes, notes = {}, {}
         for problem in settings["problems"]:
-            if problem in YARDSTICKS:
+            if problem in C_YARDSTICKS:
                 exes[problem], notes[problem], c_failed = compile_yardstick(
-                    YARDSTICKS[problem][0], Path(tmp))
+                    C_YARDSTICKS[problem][0], Path(tmp))
                 print(f"C yardstick of {problem}: {notes[problem]}")
                 ok &= not c_failed
         for problem in settings["problems"]:

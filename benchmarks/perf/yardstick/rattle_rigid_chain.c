@@ -13,7 +13,8 @@
  * with A(e) = (e^T; E(e)) (4 x 4, E of problems/rigid_body.py, omega = 2 E(e) e'), whose rows
  * are orthogonal with norm |e| for any e, and D = diag(j0, J_1, J_2, J_3), j0 = mean(J),
  *   - mass block of body k: diag(m_b I3, M_e) with M_e = 4 E^T J E + 4 j0 e e^T = 4 A^T D A
- *     (the Euler-parameter kinetic energy of Nikravesh 1988), so that
+ *     (4 E^T J E the Euler-parameter mass of Nikravesh 1988, 4 j0 e e^T the term the module
+ *     adds to make it definite), so that
  *     M_e^{-1} = A^T D^{-1} A / (4 |e|^4) in closed form, no factorisation;
  *   - T = sum_k m_b |x_k'|^2 / 2 + 2 a_k^T D a_k with a = A(e) e'. Since E(e) e' = -E(e') e,
  *     dT/de = 4 (j0 a_0 e' - E(e')^T J a_{1:3}) and dT/dx = 0; U = m_b g0 sum_k z_k;
