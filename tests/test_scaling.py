@@ -20,14 +20,19 @@ from integrators.base import Grid
 PLUGIN = Path(__file__).parent / "plugins" / "faulty.py"
 
 
-@pytest.fixture(scope="module")
-def yardstick(tmp_path_factory):
-    exe, note, failed = processes.compile_yardstick("rattle_chain",
-                                                   tmp_path_factory.mktemp("yardstick"))
+def compiled(name, tmp_path_factory):
+    """The C yardstick ``name`` compiled as the benchmark compiles it (skip without a
+    compiler; a failed build fails)."""
+    exe, note, failed = processes.compile_yardstick(name, tmp_path_factory.mktemp("yardstick"))
     assert not failed, note
     if exe is None:
         pytest.skip(note)
     return exe
+
+
+@pytest.fixture(scope="module")
+def yardstick(tmp_path_factory):
+    return compiled("rattle_chain", tmp_path_factory)
 
 
 def test_c_yardstick_agrees_with_rattle_on_a_short_chain(yardstick):
@@ -62,12 +67,7 @@ def test_c_yardstick_agrees_with_rattle_on_a_short_chain(yardstick):
 
 @pytest.fixture(scope="module")
 def rigid_yardstick(tmp_path_factory):
-    exe, note, failed = processes.compile_yardstick("rattle_rigid_chain",
-                                                   tmp_path_factory.mktemp("yardstick"))
-    assert not failed, note
-    if exe is None:
-        pytest.skip(note)
-    return exe
+    return compiled("rattle_rigid_chain", tmp_path_factory)
 
 
 def test_rigid_c_yardstick_agrees_with_rattle_s_structured_step(rigid_yardstick):

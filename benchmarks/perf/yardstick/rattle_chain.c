@@ -38,6 +38,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "yardstick.h"
+
 #define MAX_WINDOWS 1000
 #define MAX_ITER 20
 
@@ -109,42 +111,12 @@ static double energy(long N, const double *q, const double *p, double mk) {
     return 0.5 * T / mk + mk * GRAVITY * U;
 }
 
-/* Peak resident set of this program (KiB), -1 where /proc does not give it. Not getrusage:
- * Linux charges a program with the resident set of the process that started it. */
-static long peak_rss_kib(void) {
-    FILE *f = fopen("/proc/self/status", "r");
-    char line[256];
-    long kib = -1;
-    if (!f) return -1;
-    while (fgets(line, sizeof line, f))
-        if (sscanf(line, "VmHWM: %ld kB", &kib) == 1) break;
-    fclose(f);
-    return kib;
-}
-
-static int positive_long(const char *s, long *out) {
-    char *end;
-    *out = strtol(s, &end, 10);
-    return *s != '\0' && *end == '\0' && *out >= 1;
-}
-
-static int positive_double(const char *s, double *out) {
-    char *end;
-    *out = strtod(s, &end);
-    return *s != '\0' && *end == '\0' && isfinite(*out) && *out > 0.0;
-}
-
 int main(int argc, char **argv) {
     long N, n_steps;
-    double h, tol = 1e-16;
-    const int print_state = argc == 6 && strcmp(argv[5], "state") == 0;
-    if (argc < 4 || argc > 6 || (argc == 6 && !print_state) || !positive_long(argv[1], &N)
-        || !positive_long(argv[2], &n_steps) || !positive_double(argv[3], &h)
-        || (argc >= 5 && !positive_double(argv[4], &tol))) {
-        fprintf(stderr, "usage: %s N_LINKS N_STEPS H [NEWTON_TOL [state]] "
-                        "(N_LINKS, N_STEPS whole numbers >= 1; H, NEWTON_TOL > 0)\n", argv[0]);
+    double h, tol;
+    int print_state;
+    if (parse_arguments(argc, argv, "N_LINKS", &N, &n_steps, &h, &tol, &print_state))
         return 2;
-    }
     const double l = LENGTH / N, mk = MASS / N, l2 = l * l;
     const double theta0 = M_PI / 4.0;
     const size_t n = 2 * (size_t)N;

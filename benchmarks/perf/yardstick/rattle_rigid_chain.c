@@ -65,6 +65,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "yardstick.h"
+
 #define MAX_WINDOWS 1000
 #define MAX_ITER 50            /* rattle's newton_max_iter */
 #define SIMPLIFIED_WINDOW 8.0  /* integrators/newton.py */
@@ -318,31 +320,6 @@ static double residual(long N, double l, double h, const double *q0, const doubl
     return nan ? NAN : big;
 }
 
-/* Peak resident set of this program (KiB), -1 where /proc does not give it. Not getrusage:
- * Linux charges a program with the resident set of the process that started it. */
-static long peak_rss_kib(void) {
-    FILE *f = fopen("/proc/self/status", "r");
-    char line[256];
-    long kib = -1;
-    if (!f) return -1;
-    while (fgets(line, sizeof line, f))
-        if (sscanf(line, "VmHWM: %ld kB", &kib) == 1) break;
-    fclose(f);
-    return kib;
-}
-
-static int positive_long(const char *s, long *out) {
-    char *end;
-    *out = strtol(s, &end, 10);
-    return *s != '\0' && *end == '\0' && *out >= 1;
-}
-
-static int positive_double(const char *s, double *out) {
-    char *end;
-    *out = strtod(s, &end);
-    return *s != '\0' && *end == '\0' && isfinite(*out) && *out > 0.0;
-}
-
 /* Quaternion product c = a b (scalar first). */
 static void quat_mul(const double *a, const double *b, double *c) {
     c[0] = a[0] * b[0] - (a[1] * b[1] + a[2] * b[2] + a[3] * b[3]);
@@ -393,15 +370,10 @@ static void initial_state(long N, double l, double *q, double *v) {
 
 int main(int argc, char **argv) {
     long N, n_steps;
-    double h, tol = 1e-16;
-    const int print_state = argc == 6 && strcmp(argv[5], "state") == 0;
-    if (argc < 4 || argc > 6 || (argc == 6 && !print_state) || !positive_long(argv[1], &N)
-        || !positive_long(argv[2], &n_steps) || !positive_double(argv[3], &h)
-        || (argc >= 5 && !positive_double(argv[4], &tol))) {
-        fprintf(stderr, "usage: %s N_BODIES N_STEPS H [NEWTON_TOL [state]] "
-                        "(N_BODIES, N_STEPS whole numbers >= 1; H, NEWTON_TOL > 0)\n", argv[0]);
+    double h, tol;
+    int print_state;
+    if (parse_arguments(argc, argv, "N_BODIES", &N, &n_steps, &h, &tol, &print_state))
         return 2;
-    }
     D[0] = (J[0] + J[1] + J[2]) / 3.0;
     for (int i = 0; i < 3; i++) D[1 + i] = J[i];
     for (int i = 0; i < 4; i++) Dinv[i] = 1.0 / D[i];
