@@ -155,12 +155,14 @@ class AlphaMethod(FixedStep):
         if ggl:
             data = jnp.maximum(data, coef.beta * h / coef.gamma * mech.rounding(q, t, state.v))
 
+        solve = mech.mass_solver(q)   # factorised once per step, not per iteration
+
         def linear(z, r):
             r_M, r_g = r[:n], r[n:n + m]
             r_v = r[n + m:] if ggl else r_g
-            MinvR = mech.solve_mass(q, r_M)
+            MinvR = solve(r_M)
             dLam = schur.solve(S0, cm * r_v - mech.G_times(q, t, MinvR))
-            dx = -(MinvR + mech.solve_mass(q, mech.GT(q, t, dLam))) / cm
+            dx = -(MinvR + solve(mech.GT(q, t, dLam))) / cm
             parts = [dx, dLam] + ([gram.solve(P0, r_v - r_g)] if ggl else [])
             return jnp.concatenate(parts), jnp.maximum(jnp.max(jnp.abs(z)), data)
 

@@ -126,7 +126,8 @@ class LobattoIIIAIIIB(FixedStep):
         """Simplified Newton's correction for the stage system (see the class notes)."""
         s, n, m = self.stages, mech.n, mech.m
         A, Ah, b, c, B_inv = self.tableau()
-        Minv = jax.vmap(lambda x: mech.solve_mass(q0, x))
+        solve0 = mech.mass_solver(q0)   # factorised once per step, not per iteration
+        Minv = jax.vmap(solve0)
         weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
 
         def linear(z, r):
@@ -146,7 +147,7 @@ class LobattoIIIAIIIB(FixedStep):
             MinvRP = Minv(RP)
             rhs = jnp.concatenate([
                 Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * combine(A[1:], MinvRP)),
-                (Rv - mech.G_times(q1, t + h, mech.solve_mass(q0, Rp)))[None],
+                (Rv - mech.G_times(q1, t + h, solve0(Rp)))[None],
             ]) * weights[:, None]                                   # (s, m)
             dLam = combine(B_inv, schur.solve(S0, rhs.T).T)           # (s, m)
             dP = -RP - h * combine(Ah, GQT(Q, ts, dLam))

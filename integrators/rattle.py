@@ -45,8 +45,10 @@ class Rattle(FixedStep):
     projection) and ``G`` is never formed. Where the frozen Jacobian does not converge,
     Newton with the exact Jacobian (matrix-free) takes over, preconditioned by ``S``
     factorised afresh at the ``q_1`` of its first iterate (without forces; by ``S_0`` with
-    them). With forces the unknown is again ``(p_{1/2}, q_1, lambda)``, and the same
-    elimination reduces its correction to one solve with ``S_0``. Newton starts from the
+    them). With forces or a configuration-dependent mass the unknown is again ``(p_{1/2},
+    q_1, lambda)``, and the same elimination reduces its correction to one solve with
+    ``S_0``; ``M(q_0)`` is factorised once per step for every solve at ``q_0``
+    (:meth:`problems.mechanics.Mechanics.mass_solver`). Newton starts from the
     previous step's ``mu``, the constraint force at ``q_0`` (``lambda`` is that at the
     previous ``q_0``): a closer guess, which the frozen Jacobian's small region of
     convergence needs where a step starts at a singular configuration. There ``S_0`` is
@@ -94,11 +96,14 @@ class Rattle(FixedStep):
         constraints on the structured path was 4.8 to 12 times as fast."""
         return 1 if mech.separable else 0
 
-    def forces(self, mech: Mechanics):
-        """``F(t, q, p) = -H_q(q, p) + f(t, q, H_p(q, p))``."""
+    def forces(self, mech: Mechanics, solve=None):
+        """``(t, q, p) -> (F(t, q, p), H_p(q, p))`` with ``F(t, q, p) = -H_q(q, p) + f(t, q,
+        H_p(q, p))``; ``solve``, where given, is ``M(q)^{-1}`` of the one ``q`` it is called at
+        (:meth:`problems.mechanics.Mechanics.mass_solver`)."""
 
         def F(t, q, p):
-            return -mech.H_q(q, p) + mech.external(t, q, mech.H_p(q, p))
+            v = mech.H_p(q, p) if solve is None else solve(p)
+            return -mech.H_q(q, p, v) + mech.external(t, q, v), v
 
         return F
 
@@ -120,9 +125,10 @@ class Rattle(FixedStep):
         def position_general(q0, p0, F0, G0, lam, t, h):
             def residual(z):
                 p_half, q1, lam = z[:n], z[n:2 * n], z[2 * n:]
+                F_half, v_half = F(t, q0, p_half)
                 return jnp.concatenate([
-                    p_half - p0 - 0.5 * h * (F(t, q0, p_half) - G0.T @ lam),
-                    q1 - q0 - 0.5 * h * (mech.H_p(q0, p_half) + mech.H_p(q1, p_half)),
+                    p_half - p0 - 0.5 * h * (F_half - G0.T @ lam),
+                    q1 - q0 - 0.5 * h * (v_half + mech.H_p(q1, p_half)),
                     mech.g(q1, t + h),
                 ])
 
@@ -154,11 +160,16 @@ class Rattle(FixedStep):
             return (*half(sol.z), sol, 0)
 
         def position_structured(q0, p0, F0, S0, lam, t, h):
+            # M(q0)^-1 is used in every iteration: factorised once, here.
+            solve0 = mech.mass_solver(q0)
+            F0_at = self.forces(mech, solve0)
+
             def residual(z):
                 p_half, q1, lam = z[:n], z[n:2 * n], z[2 * n:]
+                F_half, v_half = F0_at(t, q0, p_half)
                 return jnp.concatenate([
-                    p_half - p0 - 0.5 * h * (F(t, q0, p_half) - mech.GT(q0, t, lam)),
-                    q1 - q0 - 0.5 * h * (mech.H_p(q0, p_half) + mech.H_p(q1, p_half)),
+                    p_half - p0 - 0.5 * h * (F_half - mech.GT(q0, t, lam)),
+                    q1 - q0 - 0.5 * h * (v_half + mech.H_p(q1, p_half)),
                     mech.g(q1, t + h),
                 ])
 
@@ -167,13 +178,13 @@ class Rattle(FixedStep):
                 # dq = -r2 + h M^-1 dp and G0 dq = -r3 give
                 # h^2/2 S0 dlam = r3 - G0 (r2 + h M^-1 r1).
                 r1, r2, r3 = r[:n], r[n:2 * n], r[2 * n:]
-                rhs = r3 - mech.G_times(q0, t, r2 + h * mech.solve_mass(q0, r1))
+                rhs = r3 - mech.G_times(q0, t, r2 + h * solve0(r1))
                 dlam = schur.solve(S0, rhs) * (2.0 / (h * h))
                 dp = -r1 - 0.5 * h * mech.GT(q0, t, dlam)
-                dq = -r2 + h * mech.solve_mass(q0, dp)
+                dq = -r2 + h * solve0(dp)
                 return jnp.concatenate([dp, dq, dlam]), jnp.max(jnp.abs(z))
 
-            z0 = jnp.concatenate([p0, q0 + h * mech.H_p(q0, p0), lam])
+            z0 = jnp.concatenate([p0, q0 + h * solve0(p0), lam])
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
             return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
 
@@ -186,19 +197,20 @@ class Rattle(FixedStep):
         ``G M^{-1} G^T`` at ``q0`` otherwise; the multipliers start at zero."""
         p0 = mech.momentum(q0, v0)
         first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
-        return q0, p0, self.forces(mech)(t0, q0, p0), first, jnp.zeros(mech.m)
+        return q0, p0, self.forces(mech)(t0, q0, p0)[0], first, jnp.zeros(mech.m)
 
     def step(self, mech: Mechanics, schur, carry, t, h):
         """One step (:class:`integrators.fixed.FixedStep`)."""
         q0, p0, F0, S0, lam = carry
         p_half, q1, sol, extra_f = self.position(mech, schur)(q0, p0, F0, S0, lam, t, h)
         t1 = t + h
-        F1 = self.forces(mech)(t1, q1, p_half)
+        solve1 = mech.mass_solver(q1)
+        F1 = self.forces(mech, solve1)(t1, q1, p_half)[0]
         base = p_half + 0.5 * h * F1
-        rhs = mech.vel_residual(q1, mech.H_p(q1, base), t1)
+        rhs = mech.vel_residual(q1, solve1(base), t1)
         if schur.name == "dense":
             G1 = mech.G(q1, t1)
-            mu = solve(0.5 * h * G1 @ mech.solve_mass(q1, G1.T), rhs)
+            mu = solve(0.5 * h * G1 @ solve1(G1.T), rhs)
             p1, S1, ok = base - 0.5 * h * G1.T @ mu, G1, True
         else:
             S1 = schur.factor(q1, t1)

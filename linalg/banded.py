@@ -27,9 +27,13 @@ BAND_MAX = 16
 
 
 def unroll(w: int) -> int:
-    """Rows per scan iteration: a narrow band's row is a few operations, and unrolling 16
-    of them halved the cost per row of the tridiagonal factor and solve (m = 16384)."""
-    return max(1, 16 // w)
+    """Rows per scan iteration: a narrow band's row is a few operations, and the scan's own
+    cost per iteration is most of it. Four rows came out best or within the noise of best
+    for bandwidths 1, 2 and 6 (m = 65536, one core: the factor took 18 ns per row at
+    ``w = 1`` against 25 to 33 with 16 rows, 36 against 47 at ``w = 6`` with 2; the solve
+    14 against 16, and 29 against 30); wider bands, whose rows are long already, take
+    fewer (their code grows like the bandwidth squared times the rows unrolled)."""
+    return 4 if w <= 8 else max(1, 16 // w)
 
 
 def pivot(d2: jax.Array, diagonal: jax.Array) -> jax.Array:

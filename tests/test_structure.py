@@ -124,6 +124,11 @@ def test_a_mass_given_by_the_kinetic_energy_is_solved_blockwise_and_whitened():
     b = np.random.default_rng(1).standard_normal(mech.n)
     assert np.max(np.abs(np.asarray(mech.solve_mass(q, jnp.asarray(b)))
                          - np.linalg.solve(M, b))) <= 1e-13
+    # The solver with its factors computed once solves alike, and H_q takes its velocity.
+    solve = mech.mass_solver(q)
+    assert np.max(np.abs(np.asarray(solve(jnp.asarray(b))) - np.linalg.solve(M, b))) <= 1e-13
+    p = jnp.asarray(M @ b)
+    assert np.max(np.abs(np.asarray(mech.H_q(q, p, solve(p)) - mech.H_q(q, p)))) <= 1e-13
     schur = mech.schur("banded")
     r = np.random.default_rng(2).standard_normal(mech.m)
     x = np.asarray(jax.jit(lambda q, r: schur.solve(schur.factor(q, t), r))(q, jnp.asarray(r)))
