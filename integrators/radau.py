@@ -332,7 +332,9 @@ class SchurStages(NamedTuple):
     def factor(self, frozen, h):
         q, t = frozen
         schur = self.mech.schur(self.linear_solver)
-        factors = (schur.factor(q, t),)
+        # M(q_n)'s block factors are kept with S's: each Newton iteration solves with M twice
+        mass = None if self.mech.mass_blocks is None else self.mech.mass_factor(q)
+        factors = (schur.factor(q, t), mass)
         if self.ggl:
             factors += (self.mech.gram(schur.name).factor(q, t),)
         return factors
@@ -341,7 +343,7 @@ class SchurStages(NamedTuple):
         mech, (q, t) = self.mech, frozen
         n, m = mech.n, mech.m
         schur = mech.schur(self.linear_solver)
-        M_inv = _real_linear(partial(mech.solve_mass, q))
+        M_inv = _real_linear(mech.mass_solver(q, factors[1]))
         G = _real_linear(partial(mech.G_times, q, t))
         GT = _real_linear(partial(mech.GT, q, t))
         S_inv = _real_linear(partial(schur.solve, factors[0]))
@@ -355,7 +357,7 @@ class SchurStages(NamedTuple):
         dv = (Minv_rv - M_inv(GT(dlam))) / c
         if not self.ggl:
             return jnp.concatenate([(r_q + dv) / c, dv, dlam])
-        P_inv = _real_linear(partial(mech.gram(schur.name).solve, factors[1]))
+        P_inv = _real_linear(partial(mech.gram(schur.name).solve, factors[2]))
         dmu = P_inv(G(r_q) + r_w - c * r_g)
         return jnp.concatenate([(r_q + dv - GT(dmu)) / c, dv, dlam, dmu])
 

@@ -227,9 +227,11 @@ class Mechanics:
         # triangular solves, which XLA's CPU backend runs about 200x slower than LU's.
         return jnp.linalg.solve(self.mass(q), b)
 
-    def mass_solver(self, q: Array) -> Callable[[Array], Array]:
+    def mass_solver(self, q: Array, factors: list[Array] | None = None
+                    ) -> Callable[[Array], Array]:
         """``b -> M(q)^{-1} b`` at one configuration, with what depends on ``q`` alone (the
-        Cholesky factors of :attr:`mass_blocks`) computed once, here.
+        Cholesky factors of :attr:`mass_blocks`) computed once, here, or given as
+        ``factors`` (:meth:`mass_factor`) by a caller that keeps them across steps.
 
         For the solves that a frozen Newton matrix repeats at one ``q`` in every iteration:
         XLA does not move the factorisation out of the Newton loop by itself, and RATTLE on
@@ -237,7 +239,7 @@ class Mechanics:
         8.2 us with this (one core, load 2).
         """
         if self.mass_blocks is not None:
-            factors = self.mass_factor(q)
+            factors = self.mass_factor(q) if factors is None else factors
             return lambda b: self.mass_blocks.solve(factors, b)
         return partial(self.solve_mass, q)
 
