@@ -24,7 +24,8 @@ Throughput
 
     This process starts JAX with :data:`integrators.loop.KERNEL_FLAG` (the benchmark
     workers do too), under which XLA compiles the whole time loop into one kernel; the
-    report says whether it did. ``--xla-default`` measures without the flag instead.
+    report says whether it did. ``--xla-default`` measures without the flag instead. It
+    runs with one intra-op thread (XLA, BLAS), as the workers do: C runs on one core.
 
 Memory
     ``rattle`` runs ``1e6`` and ``1e7`` steps on sps-receiver, each in a fresh Python
@@ -58,7 +59,7 @@ import numpy as np
 
 import integrators
 import problems
-from benchmarks import compilation
+from benchmarks import compilation, pool
 from benchmarks.perf.processes import compile_yardstick, run_process, state_difference
 from benchmarks.records import CommandParser
 from integrators.base import Grid
@@ -288,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     # import): nothing has computed yet.
     if not args.xla_default:
         os.environ.update(kernel_environment())
+    pool.one_blas_thread()
+    pool.one_xla_thread()
     print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     ok = True
     if not args.skip_throughput:
