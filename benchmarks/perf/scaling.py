@@ -71,7 +71,7 @@ What each number is
         (:func:`benchmarks.perf.processes.like_a_worker`); C is single-threaded. Without
         the one-thread CPU client, XLA ran independent parts of a step on a second core:
         rattle on rigid-chain:N=16384 then took 3.7 us per body and step by the wall clock
-        and 6.4 us of CPU time, against 5.7 us of either on one thread.
+        and 6.4 us of CPU time, against 5.7 to 6.0 us of either on one thread.
     Newton iterations per step
         the trajectory's ``n_newton`` over its steps (IDA: nonlinear iterations per
         internal step; ``baumgarte-rk4`` has none).

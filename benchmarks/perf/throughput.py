@@ -25,7 +25,8 @@ Throughput
     This process starts JAX with :data:`integrators.loop.KERNEL_FLAG` (the benchmark
     workers do too), under which XLA compiles the whole time loop into one kernel; the
     report says whether it did. ``--xla-default`` measures without the flag instead. It
-    runs with one intra-op thread (XLA, BLAS), as the workers do: C runs on one core.
+    runs with one intra-op thread (XLA's CPU client, BLAS), as the workers do, C being on
+    one core; unlike theirs, its ``XLA_FLAGS`` are only the kernel flag's (or none).
 
 Memory
     ``rattle`` runs ``1e6`` and ``1e7`` steps on sps-receiver, each in a fresh Python
