@@ -32,7 +32,9 @@ def unroll(w: int) -> int:
     for bandwidths 1, 2 and 6 (m = 65536, one core: the factor took 18 ns per row at
     ``w = 1`` against 25 to 33 with 16 rows, 36 against 47 at ``w = 6`` with 2; the solve
     14 against 16, and 29 against 30); wider bands, whose rows are long already, take
-    fewer (their code grows like the bandwidth squared times the rows unrolled)."""
+    fewer (their code grows like the bandwidth squared times the rows unrolled). The same
+    rule serves :mod:`linalg.kkt`'s band ``L D L^T``; bandwidths 7 and 8 (``four-bar``'s
+    augmented system has 7) take four rows like 6 without a measurement of their own."""
     return 4 if w <= 8 else max(1, 16 // w)
 
 

@@ -209,7 +209,7 @@ class Pattern:
         mc = len(self.core)
         position = np.full(m, -1)
         position[self.core] = np.arange(mc)
-        sentinel = self.nnz  # index of an appended zero (the padded core rows below)
+        sentinel = self.nnz  # index of an appended zero: padding of the core and border rows below
         # Band slots: every pair of core entries sharing a column contributes
         # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)). The pairs of a
         # column are listed e1-major, the columns in ascending order and the entries of a
