@@ -88,8 +88,9 @@ class Blocks:
         # over 200 of the group indices; at N=16384, 390 MB of constants).
         self._group_index = [device_index(g.T.ravel()) for g in self.groups]
         self._inverse = device_index(self.inverse)
-        self._seeds = jnp.asarray(
-            (self.position[None, :] == np.arange(self.size)[:, None]).astype(np.float64))
+        with jax.ensure_compile_time_eval():   # concrete even when first built in a trace
+            self._seeds = jnp.asarray(
+                (self.position[None, :] == np.arange(self.size)[:, None]).astype(np.float64))
 
     @property
     def block_diagonal(self) -> bool:

@@ -116,6 +116,18 @@ def test_blocks_of_a_mass_are_its_connected_components_and_solve_it():
     assert np.all(spread | (G @ W == 0))
 
 
+def test_block_structure_first_found_inside_a_trace_serves_later_traces():
+    # mass_blocks is found once, on first use: where that use is inside jax.jit, its
+    # arrays must still be concrete, or the next compiled function meets a leaked tracer.
+    mech = problems.make("rigid-chain:N=2").mech
+    q = jnp.asarray(problems.make("rigid-chain:N=2").q0)
+    b = jnp.arange(1.0, mech.n + 1)
+    first = jax.jit(lambda q: mech.mass_factor(q))(q)
+    x = jax.jit(lambda q, b: mech.mass_solver(q)(b))(q, b)
+    assert np.max(np.abs(np.asarray(mech.mass(q)) @ np.asarray(x) - np.asarray(b))) <= 1e-12
+    assert len(first) == len(mech.mass_blocks.groups)
+
+
 @pytest.mark.slow
 def test_a_mass_given_by_the_kinetic_energy_is_solved_blockwise_and_whitened():
     # rigid-chain's mass: 3N translational 1 x 1 blocks and N quaternion 4 x 4 blocks,
