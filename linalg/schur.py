@@ -130,6 +130,16 @@ def choose(kind: str, shape: tuple[int, int],
     """
     if kind not in KINDS:
         raise ValueError(f"linear_solver = {kind!r}: expected one of {', '.join(KINDS)}")
+    # A solver is built once and kept (Mechanics.schur): built on first use inside a trace,
+    # its arrays would be tracers, leaked into every later compiled function that uses it.
+    with jax.ensure_compile_time_eval():
+        return _build(kind, shape, G, solve_mass, mass_diagonal, sparsity, G_values,
+                      mass_matrix, dense_max)
+
+
+def _build(kind, shape, G, solve_mass, mass_diagonal, sparsity, G_values, mass_matrix,
+           dense_max) -> Schur:
+    """:func:`choose`'s choice and construction, its arguments as validated there."""
     diagonal = mass_diagonal is not None
     if kind == "kkt" or (kind == "auto" and mass_matrix is not None
                          and shape[0] > DENSE_KKT_MAX):

@@ -493,3 +493,25 @@ def test_a_diverged_iterate_fails_the_superlu_solve_as_data():
     bad = S.factor(q * jnp.nan, 0.0)
     assert not bool(bad.ok)
     assert np.all(np.isnan(np.asarray(S.solve(bad, rhs))))
+
+
+@pytest.mark.parametrize("spec, kind", [("chain:N=40", "banded"), ("chain:N=40", "superlu"),
+                                        ("four-bar:N=40", "kkt"), ("rigid-chain:N=4", "banded")])
+def test_a_structured_solver_first_built_inside_a_trace_serves_later_traces(spec, kind):
+    # Mechanics.schur builds each solver once, on first use, and keeps it: where that use is
+    # inside jax.jit, the solver's arrays must still be concrete, or the next compiled
+    # function meets a leaked tracer.
+    case = problems.make(spec)
+    mech, q, t = case.mech, jnp.asarray(case.q0), jnp.asarray(0.0)
+    r = jnp.asarray(np.random.default_rng(3).standard_normal(mech.m))
+
+    def solved(q, r):
+        schur = mech.schur(kind)
+        return schur.solve(schur.factor(q, t), r)
+
+    first = jax.jit(solved)(q, r)
+    again = jax.jit(lambda q, r: solved(q, r) * 2.0)(q, r)
+    M, G = np.asarray(mech.mass(q)), np.asarray(mech.G(q, t))
+    S = G @ np.linalg.solve(M, G.T)
+    assert np.max(np.abs(S @ np.asarray(first) - np.asarray(r))) <= 1e-9 * np.max(np.abs(S))
+    assert np.array_equal(np.asarray(again), 2.0 * np.asarray(first))
