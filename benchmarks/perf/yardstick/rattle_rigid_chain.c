@@ -40,8 +40,9 @@
  *     the Jacobian frozen at q0 without the force Jacobian: h^2/2 S0 dlam = r3 - G0 (r2 + h
  *     M0^{-1} r1), dp = -r1 - h/2 G0^T dlam, dq = -r2 + h M0^{-1} dp, S0 the previous step's
  *     velocity-projection factor. Newton's test as there: converged at |r| <= tol, at a
- *     correction |dz| <= 4 eps (1 + |z|), or stalled (less than halved) within 8 times the
- *     floor eps (1 + |z_before|); it goes on only while each iteration halves |r|, for up to
+ *     correction |dz| <= 4 eps (1 + |z|), or stalled within 8 times the floor eps (1 +
+ *     |z_before|): less than halved, or at the floor after a residual within those 8
+ *     times; it goes on only while each iteration halves |r|, for up to
  *     50 corrections (max-norms over all of z, r and dz). Where rattle would then hand over
  *     to Newton with the exact Jacobian (Krylov), this program reports failure instead.
  *   - velocity projection: with base = p_half + h/2 F(q1, p_half), factorise S1 = S(q1) and
@@ -443,7 +444,10 @@ int main(int argc, char **argv) {
             const double rn_new = residual(N, l, h, q, p, z, r, v0, v1, f);
             it++;
             const double dz_norm = max_abs(nz, dz), floor_r = EPS * (1.0 + terms);
-            const int stalled = rn_new > 0.5 * rn && rn_new <= SIMPLIFIED_WINDOW * floor_r;
+            /* Halving counts only above the floor once within the window (newton.py). */
+            const int halved = rn_new <= 0.5 * rn
+                && !(rn_new <= floor_r && rn <= SIMPLIFIED_WINDOW * floor_r);
+            const int stalled = !halved && rn_new <= SIMPLIFIED_WINDOW * floor_r;
             done = rn_new <= tol || dz_norm <= 4.0 * EPS * (1.0 + max_abs(nz, z)) || stalled;
             /* Simplified Newton goes on only while it halves the residual. */
             go = !done && it < MAX_ITER && isfinite(rn_new) && rn_new <= 0.5 * rn;
