@@ -101,16 +101,19 @@ def sps_ring(N: int = 6, M: float = 0.8, m: float = 1.0, w: float = 1.0, R0: flo
     pm = jnp.asarray(point_mass)
     total_mass = float(np.sum(point_mass))
 
+    # On the coordinate sequences q[0::2], q[1::2] rather than on (2N, 2) arrays of points,
+    # as the chain's constraints are (problems.chain.link_constraints says why).
     def constraints(q, t):
-        x = q.reshape(2 * N, 2)
-        bars = jnp.sum((jnp.roll(x, -1, axis=0) - x) ** 2, axis=1) - lengths2
+        x, y = q[0::2], q[1::2]
+        dx, dy = jnp.roll(x, -1) - x, jnp.roll(y, -1) - y
+        bars = dx * dx + dy * dy - lengths2
         if not hub:
             return bars
-        return jnp.concatenate([bars, pm @ x / total_mass])
+        return jnp.concatenate([bars, jnp.stack([pm @ x, pm @ y]) / total_mass])
 
     def potential(q):
-        x = q.reshape(2 * N, 2)
-        return -0.5 * w * w * jnp.sum(pm * jnp.sum(x * x, axis=1))
+        x, y = q[0::2], q[1::2]
+        return -0.5 * w * w * jnp.sum(pm * (x * x + y * y))
 
     def coriolis_force(t, q, v):
         u = v.reshape(2 * N, 2)
@@ -120,9 +123,9 @@ def sps_ring(N: int = 6, M: float = 0.8, m: float = 1.0, w: float = 1.0, R0: flo
         return 0.5 * jnp.sum(jnp.asarray(masses) * v * v)
 
     def angular_momentum(q, v):
-        x, u = q.reshape(2 * N, 2), v.reshape(2 * N, 2)
-        spin = jnp.sum(pm * (x[:, 0] * u[:, 1] - x[:, 1] * u[:, 0]))
-        frame = w * jnp.sum(pm * jnp.sum(x * x, axis=1)) if coriolis else 0.0
+        x, y, vx, vy = q[0::2], q[1::2], v[0::2], v[1::2]
+        spin = jnp.sum(pm * (x * vy - y * vx))
+        frame = w * jnp.sum(pm * (x * x + y * y)) if coriolis else 0.0
         return spin + frame
 
     invariants = {"angular_momentum": angular_momentum}
