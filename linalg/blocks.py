@@ -10,11 +10,12 @@ batched operation:
 - the values of every block from ``k`` products ``M(q) s_c`` with the seeds
   ``s_c = sum of e_j over the coordinates j at position c of their block`` (the column
   colouring of a block-diagonal matrix: no two columns of one colour share a row);
-- the Cholesky factors ``M_b = L_b L_b^T``, solves with ``M``, and the *whitening*
-  ``y -> L^{-T} y``, which turns ``S = G M^{-1} G^T`` into ``S = \\hat G \\hat G^T`` with
-  ``\\hat G = G L^{-T}``: the structured Schur solvers then run with a unit mass on
-  ``\\hat G``, whose pattern is that of ``G`` with every entry spread over its block
-  (:meth:`Blocks.spread`).
+- the Cholesky factors ``M_b = L_b L_b^T``, solves with ``M``, and the *whitening* of
+  ``G``'s entries, ``\\hat G = G L^{-T}``, which turns ``S = G M^{-1} G^T`` into ``S = \\hat G
+  \\hat G^T``: the structured Schur solvers then run with a unit mass on ``\\hat G``, whose
+  pattern is that of ``G`` with every entry spread over its block (:meth:`Blocks.spread`).
+  Each piece of a row of ``G`` on one block, ``r``, becomes ``L_b^{-1} r`` (forward
+  substitution), all pieces of a group of blocks at once (:meth:`Blocks.whitening`).
 
 The factorisation and the substitutions are unrolled over the entries of a block and
 vectorised over the blocks of a group, and every gather takes a flat index: LAPACK calls
@@ -23,6 +24,8 @@ and multi-dimensional gathers would keep XLA from compiling the time loop into o
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +39,17 @@ from linalg.pattern import gather
 #: Largest block treated as a block: bodies and nodes have up to 7 coordinates (a rigid
 #: body in Euler parameters) or 12 (a body in natural coordinates).
 BLOCK_MAX = 12
+
+
+class Whitening(NamedTuple):
+    """Where :meth:`Blocks.whiten_rows` takes ``G``'s entries from and puts ``G L^{-T}``'s:
+    the spread pattern ``(rows, cols)``, per group of blocks the pieces' sources ``(k, P)``
+    and blocks ``(P,)``, and each output entry's place among the pieces."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    pieces: list
+    index: jax.Array
 
 
 class Blocks:
@@ -80,7 +94,7 @@ class Blocks:
             self.position[group] = np.arange(k)[None, :]
             self.members[group.ravel(), :k] = np.repeat(group, k, axis=0)
         #: Where each coordinate lands when the groups are laid out one after the other,
-        #: position-major within a group (the order :meth:`_apply` works in).
+        #: position-major within a group (the order :meth:`solve` works in).
         self.inverse = np.argsort(np.concatenate([g.T.ravel() for g in self.groups]))
         # The index arrays and seeds the compiled code reads, on the device once: an array
         # made afresh at each call is a constant of its own in every compiled program that
@@ -127,34 +141,72 @@ class Blocks:
             factors.append(L)
         return factors
 
-    def _apply(self, factors, x: jax.Array, forward: bool, backward: bool) -> jax.Array:
-        """``L^{-1}`` (``forward``), then ``L^{-T}`` (``backward``) blockwise on ``x``."""
+    def solve(self, factors, x: jax.Array) -> jax.Array:
+        """``M^{-1} x = L^{-T} L^{-1} x`` blockwise (``x`` a vector or ``(n, r)`` columns)."""
         vec = x.ndim == 1
         x = x[:, None] if vec else x
         parts = []
         for group, index, L in zip(self.groups, self._group_index, factors):
             B, k = group.shape
             y = list(gather(x, index).reshape(k, B, -1))
-            if forward:
-                for i in range(k):
-                    y[i] = (y[i] - sum((L[i][l][:, None] * y[l] for l in range(i)),
-                                       jnp.zeros_like(y[i]))) / L[i][i][:, None]
-            if backward:
-                for i in reversed(range(k)):
-                    y[i] = (y[i] - sum((L[l][i][:, None] * y[l] for l in range(i + 1, k)),
-                                       jnp.zeros_like(y[i]))) / L[i][i][:, None]
+            for i in range(k):
+                y[i] = (y[i] - sum((L[i][l][:, None] * y[l] for l in range(i)),
+                                   jnp.zeros_like(y[i]))) / L[i][i][:, None]
+            for i in reversed(range(k)):
+                y[i] = (y[i] - sum((L[l][i][:, None] * y[l] for l in range(i + 1, k)),
+                                   jnp.zeros_like(y[i]))) / L[i][i][:, None]
             parts.append(jnp.stack(y).reshape(k * B, -1))
         out = gather(jnp.concatenate(parts), self._inverse)
         return out[:, 0] if vec else out
 
-    def solve(self, factors, b: jax.Array) -> jax.Array:
-        """``M^{-1} b`` (``b`` a vector or ``(n, r)`` columns)."""
-        return self._apply(factors, b, True, True)
+    def whitening(self, rows: np.ndarray, cols: np.ndarray) -> Whitening:
+        """The index arrays of :meth:`whiten_rows` for a matrix ``G`` with the structural
+        nonzeros ``(rows, cols)`` (its entries in that order).
 
-    def whiten(self, factors, y: jax.Array) -> jax.Array:
-        """``L^{-T} y`` blockwise, so that ``G L^{-T}`` has ``(G L^{-T})(G L^{-T})^T = G M^{-1}
-        G^T``."""
-        return self._apply(factors, y, False, True)
+        A *piece* is a row of ``G`` restricted to one block; the pieces of the blocks of each
+        group are laid out position-major as a ``(k, P)`` array, gathered from ``G``'s
+        entries (a structural zero of the piece from an appended zero)."""
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        out_rows, out_cols = self.spread(rows, cols)
+        group_of, block_of = np.empty(self.n, dtype=np.int64), np.empty(self.n, dtype=np.int64)
+        for g, group in enumerate(self.groups):
+            group_of[group] = g
+            block_of[group] = np.arange(len(group))[:, None]
+        pieces, out, offset = [], np.empty(len(out_rows), dtype=np.int64), 0
+        for g, group in enumerate(self.groups):
+            B, k = group.shape
+            mine = np.flatnonzero(group_of[cols] == g)
+            keys, slot = np.unique(rows[mine] * B + block_of[cols[mine]], return_inverse=True)
+            source = np.full((k, len(keys)), len(rows), dtype=np.int64)
+            source[self.position[cols[mine]], slot] = mine
+            lands = np.flatnonzero(group_of[out_cols] == g)
+            piece = np.searchsorted(keys, out_rows[lands] * B + block_of[out_cols[lands]])
+            out[lands] = offset + self.position[out_cols[lands]] * len(keys) + piece
+            offset += k * len(keys)
+            pieces.append((device_index(source), device_index(keys % B)))
+        return Whitening(out_rows, out_cols, pieces, device_index(out))
+
+    def whiten_rows(self, factors, values: jax.Array, plan: Whitening) -> jax.Array:
+        """The entries of ``G L^{-T}`` in the order of ``plan.rows, plan.cols`` (the spread
+        pattern) from ``G``'s ``values`` (in the order :meth:`whitening` was given).
+
+        Each piece ``r`` of a row on block ``b`` becomes ``L_b^{-1} r``, since ``(G
+        L^{-T})^T = L^{-1} G^T``: a forward substitution unrolled over the block's entries and
+        vectorised over the group's pieces, the factor's entries gathered per piece.
+        ``O(nnz k)``, with no derivative of ``g`` through the factor."""
+        x = jnp.concatenate([values, jnp.zeros(1)])
+        parts = []
+        for (source, block), L in zip(plan.pieces, factors):
+            k = len(L)
+            lower = [(i, j) for i in range(k) for j in range(i + 1)]
+            at = gather(jnp.stack([L[i][j] for i, j in lower], axis=1), block)   # (P, k(k+1)/2)
+            entry = {ij: at[:, c] for c, ij in enumerate(lower)}
+            r, y = gather(x, source), []                                        # r: (k, P)
+            for i in range(k):
+                y.append((r[i] - sum((entry[i, l] * y[l] for l in range(i)),
+                                     jnp.zeros_like(r[i]))) / entry[i, i])
+            parts.append(jnp.stack(y).ravel())
+        return gather(jnp.concatenate(parts), plan.index)
 
     def spread(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pattern of ``G L^{-T}`` from that of ``G``: each entry spread over its

@@ -171,6 +171,20 @@ def test_the_per_body_bar_is_read_against_plain_c():
     assert "plain C" not in bar["value"]
 
 
+def test_a_growth_bar_says_what_more_newton_iterations_made_of_it():
+    """The verdict is the time's growth; where the iterations per step changed with N the
+    value gives both counts and the growth per iteration, and not otherwise."""
+    points = [_ok("chain", "lobatto3ab3", 1024, 1e-3, newton_per_step=4.0),
+              _ok("chain", "lobatto3ab3", 16384, 3e-2, newton_per_step=6.0),
+              _ok("chain", "rattle", 1024, 1e-4, newton_per_step=4.0),
+              _ok("chain", "rattle", 16384, 2e-3, newton_per_step=4.0)]
+    growth = _verdict(bars(points, SETTINGS), "lobatto3ab3 on chain: time")
+    assert growth["verdict"] == "FAIL" and growth["value"].startswith("30x")
+    assert "Newton iterations per step 4 -> 6, time per iteration 20x" in growth["value"]
+    growth = _verdict(bars(points, SETTINGS), "rattle on chain: time")
+    assert growth["verdict"] == "PASS" and "Newton" not in growth["value"]
+
+
 def test_ring_bar_needs_the_bound_on_g_and_the_minute():
     fine = dict(build_s=1.0, setup_s=5.0, first_solve_s=1.0)
     points = [_ok("sps-ring", "rattle", 1024, 1e-3, max_pos=1e-15, **fine),

@@ -106,14 +106,20 @@ def test_blocks_of_a_mass_are_its_connected_components_and_solve_it():
     B = rng.standard_normal((n, 3))
     assert np.max(np.abs(np.asarray(blocks.solve(L, jnp.asarray(B))) - np.linalg.solve(M, B))) \
         <= 1e-14
-    # Whitening: (G L^-T)(G L^-T)^T = G M^-1 G^T, with G L^-T inside the spread pattern.
-    G = np.zeros((3, n))
-    G[0, [0, 1]], G[1, [4, 7]], G[2, 10] = 1.0, 2.0, 3.0
-    W = np.stack([np.asarray(blocks.whiten(L, jnp.asarray(e))) for e in np.eye(n)], axis=1)
-    assert np.max(np.abs((G @ W) @ (G @ W).T - G @ np.linalg.solve(M, G.T))) <= 1e-14
-    spread = np.zeros((3, n), dtype=bool)
-    spread[blocks.spread(*np.nonzero(G))] = True
-    assert np.all(spread | (G @ W == 0))
+    # Whitening G's entries: G L^-T on the spread pattern, with (G L^-T)(G L^-T)^T = G M^-1
+    # G^T. Row 0 touches two blocks, row 1 one block at two positions, row 2 a hub row on
+    # every block, row 3 a block of its own.
+    G = np.zeros((4, n))
+    G[0, [0, 1]], G[1, [4, 2]], G[2, :] = 1.0, (2.0, -1.0), rng.standard_normal(n)
+    G[3, 10] = 3.0
+    rows, cols = np.nonzero(G)
+    plan = blocks.whitening(rows, cols)
+    values = np.asarray(blocks.whiten_rows(L, jnp.asarray(G[rows, cols]), plan))
+    W = np.zeros((4, n))
+    W[plan.rows, plan.cols] = values
+    Linv = np.linalg.inv(np.linalg.cholesky(M))
+    assert np.max(np.abs(W - G @ Linv.T)) <= 1e-14
+    assert np.max(np.abs(W @ W.T - G @ np.linalg.solve(M, G.T))) <= 1e-13
 
 
 def test_block_structure_first_found_inside_a_trace_serves_later_traces():
@@ -156,11 +162,11 @@ def test_a_mass_given_by_the_kinetic_energy_is_solved_blockwise_and_whitened():
     assert np.max(np.abs(G @ np.linalg.solve(M, G.T) @ x - r)) <= 1e-12 * np.max(np.abs(r))
 
 
-def test_a_hub_row_on_a_block_mass_is_whitened_by_reverse_colouring():
+def test_a_hub_row_on_a_block_mass_is_whitened_and_goes_to_the_border():
     # rigid-chain:N=48 with one more constraint on the height of every body's centre: a
-    # hub row on 48 coordinates, more than four times a joint row's 10. Forward mode would
-    # need a colour for each of them, so G L^-T is coloured by rows, and the hub row goes
-    # to the banded solver's border. The solve must still be that of G M^-1 G^T.
+    # hub row on 48 coordinates, more than four times a joint row's 10. Whitened, it is a
+    # piece on each of 48 blocks, and it goes to the banded solver's border. The solve
+    # must still be that of G M^-1 G^T.
     N = 48
     system = problems.make(f"rigid-chain:N={N}").system
 
@@ -171,8 +177,6 @@ def test_a_hub_row_on_a_block_mass_is_whitened_by_reverse_colouring():
     hub = System(system.n, system.m + 1, None, constraints, system.potential,
                  kinetic=system.kinetic)
     mech = hub.mech
-    assert mech.whitened_coloring.mode == "rev"
-    assert mech.whitened_coloring.num_colors < N
     schur = mech.schur("banded")
     assert schur.name == "banded" and list(schur.pattern.border) == [system.m]
     q, t = random_state(problems.make(f"rigid-chain:N={N}")), jnp.asarray(0.0)

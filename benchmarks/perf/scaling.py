@@ -460,6 +460,21 @@ def arithmetic(num: Point | None, den: Point | None) -> str:
             f"(XLA's count), {per_iteration:.3g}x the time per Newton iteration")
 
 
+def iterations(num: Point | None, den: Point | None) -> str:
+    """What a growth ratio of one family's finished points is made of where the number of
+    Newton iterations per step changes with N: the two counts and the growth of the time
+    per iteration (a simplified Newton at a fixed step can need more iterations on a larger
+    system: the chain's geometric stiffness grows like N^2); empty otherwise."""
+    if any(p is None or p.status != "ok" or not p.newton_per_step for p in (num, den)):
+        return ""
+    if abs(num.newton_per_step / den.newton_per_step - 1.0) < 0.05:
+        return ""
+    per_iteration = (num.wall_per_step / num.newton_per_step) / (den.wall_per_step
+                                                                 / den.newton_per_step)
+    return (f"; Newton iterations per step {den.newton_per_step:.3g} -> "
+            f"{num.newton_per_step:.3g}, time per iteration {per_iteration:.3g}x")
+
+
 def in_c(rigid: tuple, c: tuple) -> str:
     """The per-body bar read against plain C: the C yardsticks' own ratio of time per body
     (rigid-chain) to time per link (chain) at the same N, and how far rattle is from C on
@@ -494,10 +509,11 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
     for problem in settings["problems"]:
         for family in settings.get("families", FAMILIES):
             per = " per internal step" if family == "ida-ggl" else ""
-            out.append(_ratio_bar(
+            pair = (_find(points, problem, family, hi), _find(points, problem, family, lo))
+            bar = _ratio_bar(
                 f"{family} on {problem}: time{per} N={lo} -> {hi} grows <= {GROWTH_BAR:g}x",
-                (_find(points, problem, family, hi), _find(points, problem, family, lo)),
-                (f"{family} at N={hi}", f"{family} at N={lo}"), GROWTH_BAR, "x"))
+                pair, (f"{family} at N={hi}", f"{family} at N={lo}"), GROWTH_BAR, "x")
+            out.append({**bar, "value": bar["value"] + iterations(*pair)})
     spark = _find(points, "chain", "lobatto3ab3", SPARK_SIZE)
     name = (f"lobatto3ab3 finishes {SPARK_STEPS} steps of chain:N={SPARK_SIZE} with peak "
             f"memory < {SPARK_MEMORY / 2**30:g} GiB")
