@@ -462,9 +462,9 @@ def arithmetic(num: Point | None, den: Point | None) -> str:
 
 def iterations(num: Point | None, den: Point | None) -> str:
     """What a growth ratio of one family's finished points is made of where the number of
-    Newton iterations per step changes with N: the two counts and the growth of the time
-    per iteration (a simplified Newton at a fixed step can need more iterations on a larger
-    system: the chain's geometric stiffness grows like N^2); empty otherwise."""
+    Newton iterations per step changes with N (by 5 % or more): the two counts and the
+    growth of the time per iteration, which is what the arithmetic of a step scales; empty
+    otherwise."""
     if any(p is None or p.status != "ok" or not p.newton_per_step for p in (num, den)):
         return ""
     if abs(num.newton_per_step / den.newton_per_step - 1.0) < 0.05:
