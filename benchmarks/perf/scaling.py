@@ -454,10 +454,14 @@ def arithmetic(num: Point | None, den: Point | None) -> str:
                                            and den.newton_per_step):
         return ""
     flops = num.flops / den.flops
-    per_iteration = (num.wall_per_step / num.newton_per_step) / (den.wall_per_step
-                                                                 / den.newton_per_step)
     return (f"; {flops:.3g}x the floating-point operations per pass through the loop "
-            f"(XLA's count), {per_iteration:.3g}x the time per Newton iteration")
+            f"(XLA's count), {per_iteration(num, den):.3g}x the time per Newton iteration")
+
+
+def per_iteration(num: Point, den: Point) -> float:
+    """Ratio of two points' wall time per Newton iteration."""
+    return ((num.wall_per_step / num.newton_per_step)
+            / (den.wall_per_step / den.newton_per_step))
 
 
 def iterations(num: Point | None, den: Point | None) -> str:
@@ -469,10 +473,8 @@ def iterations(num: Point | None, den: Point | None) -> str:
         return ""
     if abs(num.newton_per_step / den.newton_per_step - 1.0) < 0.05:
         return ""
-    per_iteration = (num.wall_per_step / num.newton_per_step) / (den.wall_per_step
-                                                                 / den.newton_per_step)
     return (f"; Newton iterations per step {den.newton_per_step:.3g} -> "
-            f"{num.newton_per_step:.3g}, time per iteration {per_iteration:.3g}x")
+            f"{num.newton_per_step:.3g}, time per iteration {per_iteration(num, den):.3g}x")
 
 
 def in_c(rigid: tuple, c: tuple) -> str:
