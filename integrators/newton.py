@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from linalg.dense import rarely, solve
+from linalg.krylov import bicgstab
 
 #: Relative residual at which a Krylov solve of the fallback's Newton correction stops
 #: (the forcing term of the inexact Newton method: each outer iteration contracts the
@@ -60,9 +61,10 @@ def dense_linear(residual: Callable[[jax.Array], jax.Array]) -> Linear:
 def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) -> Linear:
     """Newton's correction with the exact Jacobian, matrix-free, preconditioned by ``linear``.
 
-    Solves ``J(z) dz = -r`` by BiCGSTAB (van der Vorst, SIAM J. Sci. Stat. Comput. 13,
-    1992) to a relative residual :data:`KRYLOV_RTOL`: ``J(z) x`` is one forward-mode
-    derivative of ``residual`` (``O(nnz)``, ``J`` never formed) and the preconditioner is
+    Solves ``J(z) dz = -r`` by BiCGSTAB (:func:`linalg.krylov.bicgstab`) to a relative
+    residual :data:`KRYLOV_RTOL`: ``J(z) x`` is one forward-mode derivative of ``residual``,
+    linearised at ``z`` once per correction (``O(nnz)``, ``J`` never formed), and the
+    preconditioner is
     the approximate inverse that ``linear`` applies (``x -> -linear(z, x)``). This is
     Newton's method with the true Jacobian at the current iterate (a Jacobian-free
     Newton-Krylov method; Knoll and Keyes, J. Comput. Phys. 193, 2004): quadratic
@@ -73,14 +75,15 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
     BiCGSTAB, not GMRES: with JAX's GMRES (either solve method) in it the time loop no
     longer compiled into one native kernel, and RATTLE's steps on chain:N=16 ran eight
     times slower (0.13 s against 0.017 s per solve, measured with
-    ``benchmarks/perf/compile_profile.py``); BiCGSTAB leaves them as fast, and XLA's
-    compilation of the loop grows from 2.1 s to 4.1 s.
+    ``benchmarks/perf/compile_profile.py``); BiCGSTAB (JAX's, then) left them as fast, and
+    XLA's compilation of the loop grew from 2.1 s to 4.1 s.
     """
 
     def linear_exact(z, r):
-        dz, _ = jax.scipy.sparse.linalg.bicgstab(
-            lambda x: jax.jvp(residual, (z,), (x,))[1], -r, tol=KRYLOV_RTOL,
-            maxiter=KRYLOV_MAX_ITER, M=lambda x: -linear(z, x)[0])
+        # Linearised once per correction: the Krylov loop's two products per iteration
+        # evaluate the tangent program, without the primal residual each time.
+        _, J = jax.linearize(residual, z)
+        dz = bicgstab(J, -r, lambda x: -linear(z, x)[0], KRYLOV_RTOL, KRYLOV_MAX_ITER)
         # The bound on the residual's terms: the exact Jacobian's |J||z| by one more
         # derivative would cost as much as a Krylov iteration; the approximate one's serves.
         return dz, linear(z, r)[1]

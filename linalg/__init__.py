@@ -1,6 +1,7 @@
 """Linear algebra below the integrators: solves with ``S = G M^{-1} G^T`` chosen by structure.
 
 Modules: :mod:`linalg.dense` (the one rank policy, small solves, the dense Schur solver),
+:mod:`linalg.krylov` (BiCGSTAB for matrix-free Newton corrections),
 :mod:`linalg.pattern` (sparsity patterns, compressed Jacobians), :mod:`linalg.blocks`
 (block-diagonal masses: blockwise factors, solves and the whitening of ``G``),
 :mod:`linalg.banded`
