@@ -64,12 +64,11 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
     Solves ``J(z) dz = -r`` by BiCGSTAB (:func:`linalg.krylov.bicgstab`) to a relative
     residual :data:`KRYLOV_RTOL`: ``J(z) x`` is one forward-mode derivative of ``residual``,
     linearised at ``z`` once per correction (``O(nnz)``, ``J`` never formed), and the
-    preconditioner is
-    the approximate inverse that ``linear`` applies (``x -> -linear(z, x)``). This is
-    Newton's method with the true Jacobian at the current iterate (a Jacobian-free
-    Newton-Krylov method; Knoll and Keyes, J. Comput. Phys. 193, 2004): quadratic
-    convergence up to the forcing term, where the frozen Jacobian of simplified Newton
-    converges only linearly, or not at all when ``J`` has moved far from it (near a
+    preconditioner is the approximate inverse that ``linear`` applies (``x -> -linear(z,
+    x)``). This is Newton's method with the true Jacobian at the current iterate (a
+    Jacobian-free Newton-Krylov method; Knoll and Keyes, J. Comput. Phys. 193, 2004):
+    quadratic convergence up to the forcing term, where the frozen Jacobian of simplified
+    Newton converges only linearly, or not at all when ``J`` has moved far from it (near a
     singular configuration, where the constraint forces change fastest).
 
     BiCGSTAB, not GMRES: with JAX's GMRES (either solve method) in it the time loop no
