@@ -32,8 +32,15 @@ a factor of four: any change of round-off (an XLA option, a JAX upgrade) can mov
 ``--update`` probes every finished adaptive run of a non-chaotic problem: it runs it again
 from initial positions scaled by ``1 + eps`` for each ``eps`` in :data:`PROBE`, on the same
 workers, and a metric or drift class that any probe moves past the gate's tolerance is
-written into the run's ``roundoff`` list in the baseline. Those metrics are compared and
-reported but never fail the gate; the run's status and its other metrics still do.
+written into the run's ``roundoff`` list in the baseline, with the range (``spread``) that
+the run and its probes gave each such metric. The gate measures a listed metric from that
+range, widened by its tolerance (:func:`benchmarks.gate.compare_metric`): a value that
+round-off could have given passes, one four times beyond the worst the probes saw fails. A
+listed drift class is compared and reported but never fails the gate; the run's status and
+its other metrics gate as for any run. The final error and ``scd`` are probed too, against
+the unperturbed run's reference: ``ida-ggl`` on ``andrews`` ended 2.6e-4 from it on one
+machine and 3.2e-5 on another, with the same code and the same libraries, and the probes
+here span that range (:data:`PROBE`).
 
 The baseline is checked before anything runs: it must be a baseline of the suite asked
 for, hold at least one run, and every run must have a ``status`` and ``metrics`` whose
@@ -68,11 +75,13 @@ from benchmarks.records import (EXIT_INPUT, CommandParser, InputError, RunSpec, 
 
 EXIT_OK, EXIT_REGRESSION = 0, 1
 #: Relative perturbations of the initial positions by which ``--update`` finds the metrics
-#: that round-off decides (module notes).
-PROBE = (1e-15, -1e-15)
-#: What a probe does not loosen: the final error and digits need the reference of the
-#: unperturbed initial values, and a run's status is always gated.
-UNPROBED = ("final_state_error", "scd", "status", "fail_step")
+#: that round-off decides (module notes). Two were too few: ``ida-ggl`` on ``andrews``
+#: (rtol 1e-6, t = 0.03) ended 2.6e-4 from the reference unperturbed, 3.0e-4 and 2.7e-4 at
+#: ``eps = +-1e-15``, but 6.8e-5 and 3.0e-5 at ``+-2e-15`` and 1.7e-5 to 1.6e-4 for ten more
+#: ``|eps| <= 2e-14``, and a machine with other round-off had recorded 3.2e-5.
+PROBE = (1e-15, -1e-15, 2e-15, -2e-15, 3e-15, -3e-15, 5e-15, -5e-15)
+#: What a probe does not loosen: a run's status is always gated.
+UNPROBED = ("status", "fail_step")
 BASELINE_FORMAT = 1
 
 
@@ -124,6 +133,12 @@ def check_entries(runs: dict, where: str) -> None:
             if _bad_metric(metric, value):
                 raise InputError(f"{where}: run {rid!r}: metric {metric} = {value!r} cannot "
                                  f"be compared with; recreate the baseline with --update")
+        spread = entry.get("spread", {})
+        if not isinstance(spread, dict) or not all(
+                isinstance(v, list) and len(v) == 2 and v[0] is not None and v[1] is not None
+                and not any(_bad_metric(m, x) for x in v) for m, v in spread.items()):
+            raise InputError(f"{where}: run {rid!r}: spread must map metric names to two "
+                             f"numbers; recreate the baseline with --update")
 
 
 def read_baseline(path: Path, suite: str | None = None) -> dict:
@@ -169,13 +184,17 @@ def write_baseline(path: Path, suite: str, current: dict) -> None:
     replace_file(path, json.dumps(data, indent=1, sort_keys=False) + "\n")
 
 
-def probe(records, jobs: int | None, timeout: float | None, load) -> dict[str, list[str]]:
-    """The metrics and drift classes that round-off decides, by run identity (module notes).
+def probe(records, jobs: int | None, timeout: float | None, load
+          ) -> dict[str, tuple[list[str], dict[str, list[float]]]]:
+    """The metrics and drift classes that round-off decides, and the range it gave each
+    such metric, by run identity (module notes).
 
-    Each finished adaptive run of a non-chaotic problem among ``records`` runs again, once for each ``eps`` in :data:`PROBE`, from its case's
-    initial positions scaled by ``1 + eps`` (a case of the Python API, made consistent by
-    the method as any initial values are); what differs from the unperturbed run by more
-    than the gate's tolerance is listed."""
+    Each finished adaptive run of a non-chaotic problem among ``records`` runs again, once
+    for each ``eps`` in :data:`PROBE`, from its case's initial positions scaled by ``1 +
+    eps`` (a case of the Python API, made consistent by the method as any initial values
+    are); what differs from the unperturbed run by more than the gate's tolerance is
+    listed, and for each listed metric the least and the greatest value of the run and its
+    finished probes (the ``spread`` that :func:`benchmarks.gate.compare` gates against)."""
     probes, cases = [], []
     for i, record in enumerate(records):
         spec, row = record.run, record.row
@@ -184,7 +203,11 @@ def probe(records, jobs: int | None, timeout: float | None, load) -> dict[str, l
         case = problems.make(spec.problem)
         for k, eps in enumerate(PROBE):
             name = f"roundoff-probe-{i}-{k}"
-            cases.append(replace(case.with_initial(case.q0 * (1.0 + eps), case.v0), name=name))
+            # The unperturbed reference serves the probe: on a problem that is not
+            # sensitive a relative change of 1e-15 in q0 moves the exact solution by far
+            # less than the errors the gate compares (the final error's floor is 1e-12).
+            cases.append(replace(case.with_initial(case.q0 * (1.0 + eps), case.v0),
+                                 reference=case.reference, name=name))
             probes.append((i, RunSpec(name, spec.integrator, h=spec.h, rtol=spec.rtol,
                                       atol=spec.atol, t_end=spec.t_end,
                                       origin=f"round-off probe of {identity(row)}")))
@@ -194,12 +217,27 @@ def probe(records, jobs: int | None, timeout: float | None, load) -> dict[str, l
         results = run_specs([s for _, s in probes], Path(tmp), jobs, suite="check:probe",
                             repeats=1, timeout=timeout, load=load, cases=cases, log=None)
     moved: dict[str, set[str]] = {}
+    seen: dict[str, dict[str, list[float]]] = {}
     for (i, _), result in zip(probes, results):
-        rid = identity(records[i].row)
-        for finding in compare({rid: entry(records[i].row)}, {rid: entry(result.row)}):
+        rid, base, probed = identity(records[i].row), entry(records[i].row), entry(result.row)
+        for finding in compare({rid: base}, {rid: probed}):
             if finding.kind != "note" and finding.metric not in UNPROBED:
                 moved.setdefault(rid, set()).add(finding.metric)
-    return {rid: sorted(metrics) for rid, metrics in moved.items()}
+        if probed["status"] == base["status"]:
+            for metric, value in probed["metrics"].items():
+                seen.setdefault(rid, {}).setdefault(
+                    metric, [base["metrics"].get(metric)]).append(value)
+    out = {}
+    for rid, metrics in moved.items():
+        spread = {m: [min(v), max(v)] for m, v in seen.get(rid, {}).items()
+                  if m in metrics and all(_number(x) for x in v)}
+        out[rid] = (sorted(metrics), spread)
+    return out
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and not math.isnan(value)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -233,10 +271,14 @@ def main(argv=None) -> int:
     current = entries(records)
     if args.update:
         try:
-            for rid, metrics in probe(records, args.jobs, args.timeout or suite.timeout,
-                                      suite.load).items():
+            for rid, (metrics, spread) in probe(records, args.jobs,
+                                                args.timeout or suite.timeout,
+                                                suite.load).items():
                 current[rid]["roundoff"] = metrics
-                print(f"round-off decides {', '.join(metrics)} of {rid}")
+                if spread:
+                    current[rid]["spread"] = spread
+                print(f"round-off decides {', '.join(metrics)} of {rid}"
+                      + "".join(f"; {m} {lo:.3g} to {hi:.3g}" for m, (lo, hi) in spread.items()))
         except InputError as exc:
             print(f"error: {one_line(exc)}", file=sys.stderr)
             return EXIT_INPUT

@@ -59,10 +59,15 @@ def _ratio(base: float, cur: float) -> str:
     return "from 0" if base == 0 else f"x{cur / base:.3g}"
 
 
-def compare_metric(metric: str, base: float | None,
-                   cur: float | None) -> tuple[str | None, str]:
+def compare_metric(metric: str, base: float | None, cur: float | None,
+                   spread: tuple[float, float] | None = None) -> tuple[str | None, str]:
     """``("regression" | "improvement" | None, change text)`` for one metric, ``None``
-    meaning not measured."""
+    meaning not measured.
+
+    ``spread``, where given, is the range ``(lo, hi)`` that round-off alone gave the
+    baseline's metric (:func:`benchmarks.check.probe`): a regression is then measured from
+    its worse end and an improvement from its better end, so that a value anywhere in it
+    is neither."""
     tol = tolerance(metric)
     if base is None and cur is None:
         return None, ""
@@ -72,18 +77,19 @@ def compare_metric(metric: str, base: float | None,
         return None, "newly measured"
     if not math.isfinite(cur) and not (tol.direction == "higher" and cur > 0):
         return ("regression", "not finite") if math.isfinite(base) else (None, "")
+    lo, hi = (base, base) if spread is None else (min(base, *spread), max(base, *spread))
     if tol.direction == "lower":
-        if cur > tol.factor * base and cur > tol.floor:
-            return "regression", _ratio(base, cur)
-        if base > tol.factor * cur and base > tol.floor:
-            return "improvement", _ratio(base, cur)
+        if cur > tol.factor * hi and cur > tol.floor:
+            return "regression", _ratio(hi, cur)
+        if lo > tol.factor * cur and lo > tol.floor:
+            return "improvement", _ratio(lo, cur)
         return None, ""
-    b, c = min(base, tol.floor), min(cur, tol.floor)
+    c = min(cur, tol.floor)
     digits = math.log10(tol.factor)
-    if c < b - digits:
-        return "regression", f"{c - b:+.2f} digits"
-    if c > b + digits:
-        return "improvement", f"{c - b:+.2f} digits"
+    if c < min(lo, tol.floor) - digits:
+        return "regression", f"{c - min(lo, tol.floor):+.2f} digits"
+    if c > min(hi, tol.floor) + digits:
+        return "improvement", f"{c - min(hi, tol.floor):+.2f} digits"
     return None, ""
 
 
@@ -149,13 +155,17 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
 
     An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``; a baseline
     entry may list in ``roundoff`` the metrics and drift classes that round-off decides
-    (:func:`benchmarks.check.probe`), which are compared but never gating.
+    (:func:`benchmarks.check.probe`), and give in ``spread`` the range round-off gave each
+    such metric. A listed metric with a spread is gated against that range widened by its
+    tolerance (:func:`compare_metric`); one without (a drift class) is compared but never
+    gating.
     """
     findings: list[Finding] = []
     for rid, cur in current.items():
         sensitive = cur.get("sensitive", False)
         base = baseline.get(rid)
-        loose = set((base or {}).get("roundoff", ()))
+        spreads = (base or {}).get("spread", {})
+        loose = set((base or {}).get("roundoff", ())) - spreads.keys()
 
         def gating(metric: str) -> bool:
             return not sensitive and metric not in loose
@@ -191,9 +201,12 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
             b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
             if metric not in TOLERANCES and not metric.startswith("inv:"):
                 continue
-            kind, change = compare_metric(metric, b, c)
+            spread = spreads.get(metric)
+            kind, change = compare_metric(metric, b, c, spread)
             if kind is not None:
-                findings.append(Finding(kind, rid, metric, _fmt(b), _fmt(c), change,
+                shown = _fmt(b) if spread is None else \
+                    f"{_fmt(b)} (round-off {_fmt(min(spread))} to {_fmt(max(spread))})"
+                findings.append(Finding(kind, rid, metric, shown, _fmt(c), change,
                                         gating(metric)))
         for series in GROWTH:
             b, c = base.get("growth", {}).get(series), cur.get("growth", {}).get(series)

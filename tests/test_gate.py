@@ -80,6 +80,28 @@ def test_metrics_that_round_off_decides_are_compared_but_not_gating():
     assert {f.metric: f for f in compare(base, cur)}["status"].gating
 
 
+@pytest.mark.parametrize("final, scd, expect", [
+    (3.0e-5, 5.3, {}),  # inside the range round-off gave: neither
+    (1.3e-3, 4.3, {"final_state_error": "regression"}),  # over 4x its worst end
+    (2.0e-6, 6.2, {"final_state_error": "improvement", "scd": "improvement"}),
+    (2.6e-4, 3.5, {"scd": "regression"}),  # 0.6 digits below the fewest the probes had
+])
+def test_a_metric_with_a_round_off_spread_is_gated_from_its_ends(final, scd, expect):
+    """ida-ggl on andrews: the final error ranged 1.7e-5 to 3.0e-4 over initial positions
+    scaled by 1 + eps, |eps| <= 2e-14; a factor of four from the one baseline value would
+    fail on either side of it (benchmarks.check)."""
+    base = {"a": {**entry(final_state_error=2.6e-4, scd=4.3, max_pos_residual=1e-12),
+                  "roundoff": ["final_state_error", "scd", "pos_growth"],
+                  "spread": {"final_state_error": [1.7e-5, 3.0e-4], "scd": [4.2, 5.5]}}}
+    cur = {"a": entry(final_state_error=final, scd=scd, max_pos_residual=1e-12)}
+    found = {f.metric: f for f in compare(base, cur)}
+    assert {m: f.kind for m, f in found.items()} == expect
+    assert all(f.gating for f in found.values())
+    # Without its spread a listed metric is compared but not gating, as before.
+    del base["a"]["spread"]
+    assert not any(f.gating for f in compare(base, cur))
+
+
 PROBED = """
 description = "round-off probe test: an adaptive run that round-off decides, and one it does not"
 [[group]]
@@ -88,6 +110,12 @@ integrators = ["ida-ggl"]
 rtol = [1e-8]
 atol = [1e-8]
 t_end = 2.0
+
+[[group]]
+problems = ["andrews"]
+integrators = ["ida-ggl"]
+rtol = [1e-6]
+atol = [1e-8]
 
 [[group]]
 problems = ["pendulum"]
@@ -100,8 +128,9 @@ t_end = 5.0
 
 @pytest.mark.slow
 def test_update_probes_adaptive_runs_and_lists_what_round_off_decides(tmp_path):
-    """ida-ggl on the flyball governor: initial positions scaled by 1 -/+ 1e-15 move max |g|
-    from 9.7e-12 past the gate's factor (module notes of benchmarks.check)."""
+    """ida-ggl on the flyball governor: initial positions scaled by 1 + eps move max |g|
+    from 9.7e-12 past the gate's factor; on andrews they move the final error, measured
+    against the unperturbed reference (module notes of benchmarks.check)."""
     suite, baseline = tmp_path / "probe.toml", tmp_path / "baseline.json"
     suite.write_text(PROBED)
     args = ["--suite", str(suite), "--baseline", str(baseline), "--jobs", "1"]
@@ -109,6 +138,12 @@ def test_update_probes_adaptive_runs_and_lists_what_round_off_decides(tmp_path):
     runs = json.loads(baseline.read_text())["runs"]
     flyball = runs["flyball-governor / ida-ggl / rtol=1e-08 atol=1e-08 / t_end=2"]
     assert "max_pos_residual" in flyball["roundoff"]
+    lo, hi = flyball["spread"]["max_pos_residual"]
+    assert lo <= flyball["metrics"]["max_pos_residual"] <= hi and hi > 4 * lo
+    andrews = runs["andrews / ida-ggl / rtol=1e-06 atol=1e-08 / t_end=0.03"]
+    assert "final_state_error" in andrews["roundoff"]
+    lo, hi = andrews["spread"]["final_state_error"]
+    assert 1e-6 < lo and hi > 4 * lo and hi < 1e-2  # errors of the method, not of a lost reference
     assert "roundoff" not in runs["pendulum / baumgarte-dopri5 / rtol=1e-08 atol=1e-10 / t_end=5"]
     assert check.main(args) == 0
 
@@ -182,6 +217,9 @@ def baseline_file(path, suite="gate", runs=None):
     ("gate", {"a": entry(final_state_error=float("inf"))}, "final_state_error = inf"),
     ("gate", {"a": entry(scd="12")}, "scd = '12'"),
     ("gate", {"a": {**entry(), "roundoff": "max_pos_residual"}}, "roundoff must be a list"),
+    ("gate", {"a": {**entry(), "spread": {"scd": [1.0]}}}, "spread must map metric names"),
+    ("gate", {"a": {**entry(), "spread": {"final_state_error": [1e-5, float("nan")]}}},
+     "spread must map metric names"),
 ])
 def test_baselines_that_cannot_gate_are_refused_before_anything_runs(suite, runs, words,
                                                                       tmp_path, capsys):
