@@ -64,8 +64,10 @@ or a run over another horizon, compiles once.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import time
 from collections import OrderedDict
 from functools import partial
 from typing import Any, Callable, NamedTuple
@@ -76,6 +78,7 @@ import numpy as np
 
 from integrators.base import COUNTERS, Failure, Grid, Status, Trajectory
 from integrators.record import measurer, series_names
+from integrators.newton import deferred_fallback
 from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics
 
@@ -208,11 +211,17 @@ def attempt(step: Step, observe: Callable[[Any], tuple[jax.Array, jax.Array]], c
 
 
 def _loop(mech: Mechanics, grid: Grid, step: Step,
-          observe: Callable[[Any], tuple[jax.Array, jax.Array]], lanes: bool) -> Callable:
-    """The loop as a function of ``(carry0, h, N, W, stride)``: ``N`` steps of size ``h``
-    from ``grid.t0``, maxima over ``W`` windows, a sample every ``stride`` steps (in
-    arrays of the grid's sizes, of which the first ``W`` and ``N // stride + 1`` rows are
-    used).
+          observe: Callable[[Any], tuple[jax.Array, jax.Array]], lanes: bool,
+          retaken: bool = False) -> tuple[Callable, Callable]:
+    """The loop as two functions: ``begin(carry0) -> (state, E0, I0)``, its state before
+    the first step, and ``run(state, E0, I0, h, N, W, stride) -> (state, (q, v))``, which
+    takes steps of size ``h`` from the state's step ``k`` to ``N`` (or the first failure),
+    with maxima over ``W`` windows and a sample every ``stride`` steps (in arrays of the
+    grid's sizes, of which the first ``W`` and ``N // stride + 1`` rows are used). The
+    state is ``(k, lane, carry, code, resid, wins, samp_q, samp_v, counts)``; ``run`` may
+    continue from a state that another ``run`` left (:func:`march`). The work of a step
+    that fails is counted, unless ``retaken``: then another loop takes that step again and
+    counts it.
 
     With ``lanes`` the carry has a leading axis of lanes; the step, the observation and
     the measures are mapped over it (``jax.vmap``), while the loops' control stays one
@@ -268,23 +277,30 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
             return (k + 1, lane + good.astype(lane.dtype), select(good, new, carry),
                     jnp.where(active, code1, code), jnp.where(active, resid1, resid),
                     jnp.maximum(peak, jnp.where(good[..., None], m, 0.0)),
-                    counts + jnp.where(active[..., None], inc, 0))
+                    counts + jnp.where((good if retaken else active)[..., None], inc, 0))
 
         peak = jnp.zeros(code.shape + (3 + n_inv,))
         return jax.lax.while_loop(cond, body, (k, lane, carry, code, resid, peak, counts))
 
-    def run(carry0, h, N, W, stride):
+    def begin(carry0):
+        # The loop's state before the first step, and the energy and invariants at t0.
         q0, v0 = see(carry0)
         tz = jnp.asarray(t0, dtype=jnp.float64)
         E0, I0 = lift(mech.energy)(q0, v0), lift(mech.invariant_values)(q0, v0)
-        shape = E0.shape
+        shape, axis = E0.shape, E0.ndim
         first = measure(tz, q0, v0, E0, I0)
         wins = jnp.zeros(shape + (grid.n_windows, 3 + n_inv))
         samp_q = jnp.zeros(shape + (grid.n_samples, mech.n))
         samp_v = jnp.zeros(shape + (grid.n_samples, mech.n))
-        axis = len(shape)
         wins, samp_q, samp_v = (put(a, 0, row, axis)
                                 for a, row in ((wins, first), (samp_q, q0), (samp_v, v0)))
+        state = (jnp.asarray(0, jnp.int64), jnp.zeros(shape, jnp.int64), carry0,
+                 jnp.zeros(shape, jnp.int32), jnp.zeros(shape), wins, samp_q, samp_v,
+                 jnp.zeros(shape + (len(WORK),), jnp.int64))
+        return state, E0, I0
+
+    def run(state, E0, I0, h, N, W, stride):
+        axis = E0.ndim
 
         def cond(state):
             k, _, _, code, *_ = state
@@ -307,15 +323,10 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
             samp_v = put(samp_v, slot, jnp.where(due, v, take(samp_v, slot, axis)), axis)
             return k, lane, carry, code, resid, wins, samp_q, samp_v, counts
 
-        state = (jnp.asarray(0, jnp.int64), jnp.zeros(shape, jnp.int64), carry0,
-                 jnp.zeros(shape, jnp.int32), jnp.zeros(shape), wins, samp_q, samp_v,
-                 jnp.zeros(shape + (len(WORK),), jnp.int64))
-        _, lane, carry, code, resid, wins, samp_q, samp_v, counts = jax.lax.while_loop(
-            cond, body, state)
-        q, v = see(carry)
-        return lane, code, resid, q, v, wins, samp_q, samp_v, counts
+        state = jax.lax.while_loop(cond, body, state)
+        return state, see(state[2])
 
-    return run
+    return begin, run
 
 
 def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
@@ -323,6 +334,15 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
           key: tuple | None = None, linear_solver: str = "dense",
           pattern_nnz: int | None = None, lanes: bool = False) -> Callable:
     """Compile the time loop (or reuse it) and return ``solve()``.
+
+    One trajectory's loop is compiled with the exact-Jacobian fallback of the structured
+    Newton solves left out (:func:`integrators.newton.deferred_fallback`), which is most of
+    its program and rarely needed. Where a step of that loop fails and the step has such a
+    fallback, the loop with it is compiled (once, then reused like the other) and continues
+    from that step, so the run's result is that of the loop with the fallback throughout:
+    the same steps up to the one that failed, which it takes again, and the same work
+    counted (the failed attempt's is not). An ensemble's loop includes the fallback from
+    the start (its lanes fail at different steps).
 
     Parameters
     ----------
@@ -353,7 +373,8 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         ``solve() -> Trajectory`` (with ``lanes``, a list of them, one per lane); its
         attribute ``compiled`` is the compiled loop (for diagnostics such as whether XLA
         made it one kernel), its large constants passed as arguments
-        (:mod:`linalg.compiled`).
+        (:mod:`linalg.compiled`), and ``late_setup_s`` the seconds its calls have spent
+        compiling the loop with the fallback (set-up, not solving: the harness moves them).
     """
     plan = Plan.make(grid, h)
     # t_end is not in the loop (N is an argument): other horizons share it. A loop is
@@ -361,29 +382,57 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     width = jax.tree_util.tree_leaves(carry0)[0].shape[0] if lanes else None
     cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples,
                                           width, str(jax.config.jax_default_device))
-    compiled = _LOOPS.get(cache_key) if cache_key is not None else None
-    args = (carry0, jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
+    args = (jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
-    if compiled is None:
-        compiled = compile_lifted(_loop(mech, grid, step, observe, lanes), *args)
-        if cache_key is not None:
-            _LOOPS[cache_key] = compiled
-            while len(_LOOPS) > CACHE_SIZE:
-                _LOOPS.popitem(last=False)
-    else:
-        _LOOPS.move_to_end(cache_key)
+
+    def compiled_loop(fallback: bool):
+        # (begin, run), compiled or from the cache.
+        tag = None if cache_key is None else (cache_key, fallback)
+        loop = _LOOPS.get(tag) if tag is not None else None
+        if loop is None:
+            begin, run = _loop(mech, grid, step, observe, lanes, retaken=not fallback)
+            first = compile_lifted(begin, carry0)
+            state, E0, I0 = jax.eval_shape(begin, carry0)
+            with deferred_fallback() if not fallback else contextlib.nullcontext():
+                loop = (first, compile_lifted(run, state, E0, I0, *args))
+            if tag is not None:
+                _LOOPS[tag] = loop
+                while len(_LOOPS) > CACHE_SIZE:
+                    _LOOPS.popitem(last=False)
+        else:
+            _LOOPS.move_to_end(tag)
+        return loop
+
+    # Only the structured paths' Newton solves have a fallback (integrators.newton): the
+    # dense path's loop is the same with or without it. Decided here, not by the trace,
+    # since a loop kept on disk is loaded untraced (linalg.compiled).
+    deferred = not lanes and linear_solver != "dense"
+    begin, run = compiled_loop(fallback=not deferred)
     names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
 
     def solve():
-        out = jax.device_get(jax.block_until_ready(compiled(*args)))
+        state, E0, I0 = begin(carry0)
+        state, (q, v) = run(state, E0, I0, *args)
+        if deferred and int(state[3]) != 0:
+            # A step failed without the fallback: the loop with it takes that step again.
+            start = time.perf_counter()
+            exact = compiled_loop(fallback=True)[1]
+            solve.late_setup_s += time.perf_counter() - start
+            k, lane, carry, _, resid, *rest = state
+            state, (q, v) = exact((lane, lane, carry, jnp.zeros_like(state[3]),
+                                   jnp.zeros_like(resid), *rest), E0, I0, *args)
+        k, lane, carry, code, resid, wins, samp_q, samp_v, counts = state
+        out = jax.device_get(jax.block_until_ready(
+            (lane, code, resid, q, v, wins, samp_q, samp_v, counts)))
         assert out[3].dtype == np.float64, "the loop must run in float64"
         if not lanes:
             return trajectory(plan, grid.t0, names, *out, **solver)
         return [trajectory(plan, grid.t0, names, *(a[i] for a in out), **solver)
                 for i in range(len(out[0]))]
 
-    solve.compiled = compiled
+    solve.compiled = run
+    solve.late_setup_s = 0.0
     return solve
 
 

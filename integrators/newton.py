@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+import contextlib
+import contextvars
+from typing import Callable, Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +48,26 @@ class NewtonResult(NamedTuple):
 #: ``linear(z, r) -> (dz, terms)``: a Newton correction for the residual ``r`` at ``z`` and
 #: the magnitude ``max_i sum_j |J_ij| |z_j|`` of the residual's terms (or a bound on it).
 Linear = Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+
+
+_deferred: contextvars.ContextVar[bool] = contextvars.ContextVar("deferred", default=False)
+
+
+@contextlib.contextmanager
+def deferred_fallback() -> Iterator[None]:
+    """Trace :func:`newton` without the exact-Jacobian fallback of simplified Newton inside
+    this block: where simplified Newton does not converge, the solve fails.
+
+    The fallback (:func:`krylov_linear`) is most of a structured time loop's program and is
+    rarely taken: XLA took 64 s to compile RATTLE's loop on ``rigid-chain:N=4`` with it and
+    21 s without (``benchmarks/perf/compile_profile.py``, one core, load about 1). So the
+    time loop compiles its steps this way first, and the loop with the fallback only when a
+    step fails, continuing from that step (:func:`integrators.loop.march`)."""
+    token = _deferred.set(True)
+    try:
+        yield
+    finally:
+        _deferred.reset(token)
 
 
 def dense_linear(residual: Callable[[jax.Array], jax.Array]) -> Linear:
@@ -108,7 +130,9 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
     otherwise; only when that fails too has the solve failed. The structured path is then
     as robust as the dense one, whose Newton has the exact Jacobian throughout, and a step
     that simplified Newton solves costs no more at run time (the compiled program holds
-    both iterations: see :func:`krylov_linear` for what that costs).
+    both iterations: see :func:`krylov_linear` for what that costs; inside
+    :func:`deferred_fallback` it holds simplified Newton alone, and a time loop compiles
+    the fallback only for a run that needs it).
 
     Converged when ``||residual(z)||_inf <= tol``. The test is on the residual, not on the
     correction, so that ``tol`` bounds the constraint violation left in the solution. More
@@ -220,6 +244,8 @@ def newton(residual: Callable[[jax.Array], jax.Array], z0: jax.Array, tol: float
         return result(iterate(z0, r0, 0, dense_linear(residual), max_iter, EXACT_WINDOW,
                               False, quick=True))
     state = iterate(z0, r0, 0, linear, max_iter, SIMPLIFIED_WINDOW, True)
+    if _deferred.get():
+        return result(state)
 
     # Simplified Newton did not converge: the exact Jacobian takes over (docstring).
     def exact(state):

@@ -1,11 +1,15 @@
 """Newton's stopping rule, and on the structured path: where simplified Newton stalls, it is
 not accepted."""
 
+import contextlib
+from collections import OrderedDict
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import integrators
+import integrators.loop
 import problems
 from integrators.base import Grid
 from integrators.newton import AT_FLOOR, EPS, newton
@@ -87,3 +91,42 @@ def test_structured_generalized_alpha_accepts_the_round_off_of_large_coordinates
         assert str(traj.status) == "ok", (method, traj.message)
         assert traj.counts["n_steps"] == 10
         assert np.max(traj.windows["pos"]) <= 1e-10
+
+
+def test_the_loop_with_the_fallback_takes_over_at_the_step_that_failed_without_it(monkeypatch):
+    # RATTLE on chain:N=8 needs about 5.7 simplified iterations per step at h = 0.01; with a
+    # limit of 6 some steps leave simplified Newton unconverged. The loop compiled without
+    # the fallback stops there, and the loop with it (compiled then) takes that step again
+    # and goes on: the run ends as one whose loop held the fallback from the start.
+    case = problems.make("chain:N=8").with_t_end(1.0)
+    method = integrators.make("rattle", h=1e-2, newton_max_iter=6)
+    grid = Grid(case.t0, case.t_end, n_windows=10, n_samples=11)
+    monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
+    solve = method.prepare(case, grid)
+    traj = solve()
+    assert solve.late_setup_s > 0  # the fallback's loop was compiled in the solve
+    monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
+    monkeypatch.setattr(integrators.loop, "deferred_fallback", contextlib.nullcontext)
+    whole = method.prepare(case, grid)
+    ref = whole()
+    assert whole.late_setup_s == 0
+    for run in (traj, ref):
+        assert str(run.status) == "ok", run.message
+        assert run.counts["n_steps"] == 100
+    # The work counted is the method's: the attempt without the fallback is not counted.
+    assert traj.counts == ref.counts
+    assert np.allclose(traj.q_final, ref.q_final, rtol=0, atol=1e-13)
+    assert np.allclose(traj.samples["q"], ref.samples["q"], rtol=0, atol=1e-13)
+    assert set(traj.windows) == set(ref.windows)
+    for name in traj.windows:
+        assert np.allclose(traj.windows[name], ref.windows[name], rtol=0, atol=1e-13), name
+
+
+def test_a_run_that_simplified_newton_solves_never_compiles_the_fallback(monkeypatch):
+    monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
+    case = problems.make("chain:N=8").with_t_end(0.2)
+    solve = integrators.make("rattle", h=1e-2).prepare(case, Grid(case.t0, case.t_end))
+    traj = solve()
+    assert str(traj.status) == "ok" and traj.linear_solver == "banded"
+    assert solve.late_setup_s == 0
+    assert "bicgstab" not in solve.compiled.as_text()
