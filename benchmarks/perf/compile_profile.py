@@ -70,8 +70,11 @@ def main(argv=None) -> int:
         first = time.perf_counter() - start
         phases = ", ".join(f"{name} {totals[name]:.2f} s" for name in PHASES.values())
         top = ", ".join(f"{name} {t:.2f} s" for name, t in programs.most_common(3))
+        late = getattr(solve, "late_setup_s", 0.0)
         print(f"{pair}: case {built:.2f} s; set-up {setup:.2f} s ({phases}; longest in XLA: "
-              f"{top}); first solve {first:.3f} s")
+              f"{top}); first solve {first:.3f} s"
+              + (f", {late:.2f} s of it compiling the loop with the Newton fallback "
+                 "(integrators.loop.march)" if late else ""))
     return 0
 
 
