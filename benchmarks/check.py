@@ -236,6 +236,7 @@ def probe(records, jobs: int | None, timeout: float | None, load
 
 
 def _number(value) -> bool:
+    """Whether a metric value is a number a spread can hold (not None, NaN or a bool)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) \
         and not math.isnan(value)
 
