@@ -229,16 +229,11 @@ def probe(records, jobs: int | None, timeout: float | None, load
                     metric, [base["metrics"].get(metric)]).append(value)
     out = {}
     for rid, metrics in moved.items():
+        # Only values a baseline may hold (check_entries): the spread must read back.
         spread = {m: [min(v), max(v)] for m, v in seen.get(rid, {}).items()
-                  if m in metrics and all(_number(x) for x in v)}
+                  if m in metrics and not any(x is None or _bad_metric(m, x) for x in v)}
         out[rid] = (sorted(metrics), spread)
     return out
-
-
-def _number(value) -> bool:
-    """Whether a metric value is a number a spread can hold (not None, NaN or a bool)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) \
-        and not math.isnan(value)
 
 
 def parser() -> argparse.ArgumentParser:

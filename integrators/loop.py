@@ -419,10 +419,10 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             start = time.perf_counter()
             exact = compiled_loop(fallback=True)[1]
             solve.late_setup_s += time.perf_counter() - start
-            k, lane, carry, _, resid, *rest = state
-            state, (q, v) = exact((lane, lane, carry, jnp.zeros_like(state[3]),
+            _, lane, carry, code, resid, *rest = state
+            state, (q, v) = exact((lane, lane, carry, jnp.zeros_like(code),
                                    jnp.zeros_like(resid), *rest), E0, I0, *args)
-        k, lane, carry, code, resid, wins, samp_q, samp_v, counts = state
+        _, lane, _, code, resid, wins, samp_q, samp_v, counts = state
         out = jax.device_get(jax.block_until_ready(
             (lane, code, resid, q, v, wins, samp_q, samp_v, counts)))
         assert out[3].dtype == np.float64, "the loop must run in float64"
