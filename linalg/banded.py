@@ -48,12 +48,6 @@ def divide(a: jax.Array, d: jax.Array) -> jax.Array:
     return jnp.where(d != 0, a / jnp.where(d != 0, d, 1.0), 0.0)
 
 
-def reciprocal(d: jax.Array) -> jax.Array:
-    """``1 / d``, and 0 where the pivot ``d`` is 0: multiplying by it is :func:`divide`
-    (to rounding) for finite ``a``."""
-    return jnp.where(d != 0, 1.0 / jnp.where(d != 0, d, 1.0), 0.0)
-
-
 def band_cholesky(Sb: jax.Array) -> jax.Array:
     """Cholesky factor of a symmetric positive semidefinite band matrix, row by row.
 
@@ -95,15 +89,16 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
     with ``L^T``, each a scan carrying the last ``w`` solved rows. Dropped rows (zero
     pivots) get zero unknowns.
 
-    Each row multiplies by its pivot's reciprocal, computed for all rows before the scans:
-    a substitution is a chain, each row waiting for the one before, and a division in it
-    (some 15 to 20 cycles) set its pace. With one right-hand side a solve took 22 to 24 ns
-    per row against 33 at ``w = 6`` (m = 4096) and 8.4 to 8.7 against 15.7 to 16.0 at
-    ``w = 1`` (m = 16384); with three, 61 against 64 (one core, load about 0.8).
+    Each row multiplies by its pivot's reciprocal (0 for a dropped row), computed for all
+    rows before the scans: a substitution is a chain, each row waiting for the one before,
+    and a division in it, whose latency is several multiplications', set its pace. With
+    one right-hand side a solve took 22 to 24 ns per row against 33 at ``w = 6`` (m =
+    4096) and 8.4 to 8.7 against 15.7 to 16.0 at ``w = 1`` (m = 16384); with three, 61
+    against 64 (one core, load about 0.8).
     """
     m, w = Lb.shape[0], Lb.shape[1] - 1
     lower = Lb[:, :0:-1]  # L[i, i-w .. i-1]
-    inv = reciprocal(Lb[:, 0])
+    inv = divide(1.0, Lb[:, 0])
 
     def forward(y, row):
         li, di, ri = row
