@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from integrators.fixed import FixedStep, newton_failure
-from integrators.newton import newton
+from integrators.newton import max_norm, newton
 from integrators.tableau import combine, lobatto
 from problems.mechanics import Mechanics
 
@@ -114,24 +114,16 @@ class LobattoIIIAIIIB(FixedStep):
         B_inv = np.linalg.inv(np.vstack([(tab.A @ tab.A_hat)[1:], tab.b]))
         return A, Ah, b, c, B_inv
 
-    def unpack(self, mech: Mechanics, z):
-        """Stage positions, stage momenta, stage multipliers and ``p1`` from the unknowns."""
-        s, n, m = self.stages, mech.n, mech.m
-        Q = z[: s * n].reshape(s, n)
-        P = z[s * n: 2 * s * n].reshape(s, n)
-        Lam = z[2 * s * n: 2 * s * n + s * m].reshape(s, m)
-        return Q, P, Lam, z[2 * s * n + s * m:]
-
     def simplified(self, mech: Mechanics, schur, q0, t, h, S0):
         """Simplified Newton's correction for the stage system (see the class notes)."""
-        s, n, m = self.stages, mech.n, mech.m
+        s = self.stages
         A, Ah, b, c, B_inv = self.tableau()
         solve0 = mech.mass_solver(q0)   # factorised once per step, not per iteration
         Minv = jax.vmap(solve0)
         weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
 
         def linear(z, r):
-            Q, P, _, _ = self.unpack(mech, z)
+            Q, P, _, _ = z
             ts = t + c * h
             # G at the current stage positions where it multiplies a residual: only
             # the Schur block is frozen at q0, which speeds up convergence when G
@@ -139,11 +131,7 @@ class LobattoIIIAIIIB(FixedStep):
             GQ = jax.vmap(mech.G_times)
             GQT = jax.vmap(mech.GT)
             q1 = q0 + h * combine(b, Minv(P))
-            RQ = r[: s * n].reshape(s, n)
-            RP = r[s * n: 2 * s * n].reshape(s, n)
-            Rp = r[2 * s * n: 2 * s * n + n]
-            Rg = r[2 * s * n + n: 2 * s * n + n + (s - 1) * m].reshape(s - 1, m)
-            Rv = r[2 * s * n + n + (s - 1) * m:]
+            RQ, RP, Rp, Rg, Rv = r
             MinvRP = Minv(RP)
             rhs = jnp.concatenate([
                 Rg - GQ(Q[1:], ts[1:], RQ[1:] + h * combine(A[1:], MinvRP)),
@@ -153,8 +141,7 @@ class LobattoIIIAIIIB(FixedStep):
             dP = -RP - h * combine(Ah, GQT(Q, ts, dLam))
             dQ = -RQ + h * combine(A, Minv(dP))
             dp1 = -Rp - h * combine(b, GQT(Q, ts, dLam))
-            dz = jnp.concatenate([dQ.ravel(), dP.ravel(), dLam.ravel(), dp1])
-            return dz, jnp.max(jnp.abs(z))
+            return (dQ, dP, dLam, dp1), max_norm(z)
 
         return linear
 
@@ -173,29 +160,27 @@ class LobattoIIIAIIIB(FixedStep):
         v0 = mech.H_p(q0, p0)
 
         def residual(z):
-            Q, P, Lam, p1 = self.unpack(mech, z)
+            Q, P, Lam, p1 = z
             V = jax.vmap(mech.H_p)(Q, P)
             ts = t + c * h
             U = (-jax.vmap(mech.H_q)(Q, P) + jax.vmap(mech.external)(ts, Q, V)
                  - jax.vmap(mech.GT)(Q, ts, Lam))
             q1 = q0 + h * combine(b, V)
-            return jnp.concatenate([
-                (Q - q0 - h * combine(A, V)).ravel(),
-                (P - p0 - h * combine(Ah, U)).ravel(),
-                p1 - p0 - h * combine(b, U),
-                jax.vmap(mech.g)(Q[1:], ts[1:]).ravel(),
-                mech.vel_residual(q1, mech.H_p(q1, p1), t + h),
-            ])
+            return (Q - q0 - h * combine(A, V), P - p0 - h * combine(Ah, U),
+                    p1 - p0 - h * combine(b, U), jax.vmap(mech.g)(Q[1:], ts[1:]),
+                    mech.vel_residual(q1, mech.H_p(q1, p1), t + h))
 
-        z0 = jnp.concatenate([(q0 + h * c[:, None] * v0).ravel(), jnp.tile(p0, s),
-                              jnp.tile(lam, s), p0])
+        # The unknowns (Q, P, Lam, p1) and the residual's five blocks stay separate
+        # arrays: packed into one vector, every iteration sliced and concatenated them,
+        # which cost more than the arithmetic on small systems (:func:`newton`).
+        z0 = (q0 + h * c[:, None] * v0, jnp.tile(p0, (s, 1)), jnp.tile(lam, (s, 1)), p0)
         if dense:
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
             S1, ok, jac = S0, True, sol.iterations
         else:
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter,
                          self.simplified(mech, schur, q0, t, h, S0))
-        Q, P, Lam, p1 = self.unpack(mech, sol.z)
+        Q, P, Lam, p1 = sol.z
         q1 = q0 + h * combine(b, jax.vmap(mech.H_p)(Q, P))
         if not dense:
             S1 = schur.factor(q1, t + h)   # the next step's S_0

@@ -8,7 +8,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from integrators.fixed import FixedStep, newton_failure
-from integrators.newton import newton
+from integrators.newton import max_norm, newton
 from linalg.dense import solve
 from problems.mechanics import Mechanics
 
@@ -165,28 +165,28 @@ class Rattle(FixedStep):
             F0_at = self.forces(mech, solve0)
 
             def residual(z):
-                p_half, q1, lam = z[:n], z[n:2 * n], z[2 * n:]
+                p_half, q1, lam = z
                 F_half, v_half = F0_at(t, q0, p_half)
-                return jnp.concatenate([
-                    p_half - p0 - 0.5 * h * (F_half - mech.GT(q0, t, lam)),
-                    q1 - q0 - 0.5 * h * (v_half + mech.H_p(q1, p_half)),
-                    mech.g(q1, t + h),
-                ])
+                return (p_half - p0 - 0.5 * h * (F_half - mech.GT(q0, t, lam)),
+                        q1 - q0 - 0.5 * h * (v_half + mech.H_p(q1, p_half)),
+                        mech.g(q1, t + h))
 
             def linear(z, r):
                 # Frozen at q0 without the force Jacobian: dp = -r1 - h/2 G0^T dlam,
                 # dq = -r2 + h M^-1 dp and G0 dq = -r3 give
                 # h^2/2 S0 dlam = r3 - G0 (r2 + h M^-1 r1).
-                r1, r2, r3 = r[:n], r[n:2 * n], r[2 * n:]
+                r1, r2, r3 = r
                 rhs = r3 - mech.G_times(q0, t, r2 + h * solve0(r1))
                 dlam = schur.solve(S0, rhs) * (2.0 / (h * h))
                 dp = -r1 - 0.5 * h * mech.GT(q0, t, dlam)
                 dq = -r2 + h * solve0(dp)
-                return jnp.concatenate([dp, dq, dlam]), jnp.max(jnp.abs(z))
+                return (dp, dq, dlam), max_norm(z)
 
-            z0 = jnp.concatenate([p0, q0 + h * solve0(p0), lam])
+            # The unknowns and the residual's blocks stay separate arrays (:func:`newton`).
+            z0 = (p0, q0 + h * solve0(p0), lam)
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
-            return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
+            p_half, q1, lam = sol.z
+            return p_half, q1, sol._replace(z=lam), 1
 
         if schur.name == "dense":
             return position_separable if mech.separable else position_general
