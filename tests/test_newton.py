@@ -122,6 +122,33 @@ def test_the_loop_with_the_fallback_takes_over_at_the_step_that_failed_without_i
         assert np.allclose(traj.windows[name], ref.windows[name], rtol=0, atol=1e-13), name
 
 
+def test_ensemble_lanes_that_fail_without_the_fallback_take_their_step_again_with_it(
+        monkeypatch):
+    # The same for an ensemble: its lanes fail without the fallback at different steps
+    # (five of these six with a limit of 8 iterations), and those lanes run again with it.
+    # Every lane ends as in an ensemble whose loop held the fallback from the start.
+    case = problems.make("chain:N=8").with_t_end(1.0)
+    q0s, v0s = draw(case, 6, seed=1)
+    method = integrators.make("rattle", h=1e-2, newton_max_iter=8)
+    grid = Grid(case.t0, case.t_end, n_windows=10, n_samples=11)
+    monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
+    solve = method.prepare_ensemble(case, grid, q0s, v0s)
+    lanes = solve()
+    assert solve.late_setup_s > 0
+    monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
+    monkeypatch.setattr(integrators.loop, "deferred_fallback", contextlib.nullcontext)
+    whole = method.prepare_ensemble(case, grid, q0s, v0s)
+    refs = whole()
+    assert whole.late_setup_s == 0
+    for lane, ref in zip(lanes, refs):
+        assert str(lane.status) == str(ref.status) == "ok", lane.message
+        assert lane.counts == ref.counts
+        assert np.allclose(lane.q_final, ref.q_final, rtol=0, atol=1e-13)
+        assert np.allclose(lane.samples["q"], ref.samples["q"], rtol=0, atol=1e-13)
+        for name in ref.windows:
+            assert np.allclose(lane.windows[name], ref.windows[name], rtol=0, atol=1e-13)
+
+
 def test_a_run_that_simplified_newton_solves_never_compiles_the_fallback(monkeypatch):
     monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
     case = problems.make("chain:N=8").with_t_end(0.2)
