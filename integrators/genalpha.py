@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from integrators.fixed import FixedStep, newton_failure
-from integrators.newton import newton
+from integrators.newton import max_norm, newton
 from problems.mechanics import Mechanics
 
 #: ``formulation`` option -> whether the velocity constraint is enforced as well.
@@ -96,7 +96,7 @@ class AlphaMethod(FixedStep):
         """
         c = self.coefficients()
         ggl = FORMULATIONS[self.formulation]
-        n, m = mech.n, mech.m
+        m = mech.m
         q, v, a, acc, lam = state
         t1, bh2 = t + h, c.beta * h * h
         q_hat = q + h * v + h * h * (0.5 - c.beta) * a
@@ -105,26 +105,27 @@ class AlphaMethod(FixedStep):
         acc_hat = bh2 * (c.alpha_m * a - c.alpha_f * acc)
 
         def kinematics(z):
-            x = z[:n]
-            q1 = q_hat + x + (mech.GT(q, t, z[n + m:]) if ggl else 0.0)
+            x = z[0]
+            q1 = q_hat + x + (mech.GT(q, t, z[2]) if ggl else 0.0)
             v1 = v_hat + (c.gamma / (c.beta * h)) * x
             acc1 = ((1 - c.alpha_m) * x + acc_hat) / (1 - c.alpha_f)  # beta h^2 acc_{n+1}
             return q1, v1, acc1
 
         def residual(z):
             q1, v1, acc1 = kinematics(z)
-            rows = [mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
-                    + mech.GT(q1, t1, z[n:n + m]),
-                    mech.g(q1, t1)]
+            rows = (mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
+                    + mech.GT(q1, t1, z[1]), mech.g(q1, t1))
             if ggl:
-                rows.append((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1))
-            return jnp.concatenate(rows)
+                rows += ((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1),)
+            return rows
 
         def advance(z):
             q1, v1, acc1 = kinematics(z)
-            return State(q1, v1, z[:n] / bh2, acc1 / bh2, z[n:n + m] / bh2)
+            return State(q1, v1, z[0] / bh2, acc1 / bh2, z[1] / bh2)
 
-        z0 = jnp.concatenate([bh2 * a, bh2 * lam] + ([jnp.zeros(m)] if ggl else []))
+        # The unknowns (x, Lambda[, mu]) and the residual's rows stay separate arrays
+        # (:func:`integrators.newton.newton`).
+        z0 = (bh2 * a, bh2 * lam) + ((jnp.zeros(m),) if ggl else ())
         return residual, z0, advance
 
     def simplified(self, mech: Mechanics, schur, state: State, t, h):
@@ -142,7 +143,7 @@ class AlphaMethod(FixedStep):
         """
         coef = self.coefficients()
         cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
-        n, m, q = mech.n, mech.m, state.q
+        q = state.q
         ggl = FORMULATIONS[self.formulation]
         S0 = schur.factor(q, t)
         gram = mech.gram(schur.name) if ggl else None
@@ -158,13 +159,13 @@ class AlphaMethod(FixedStep):
         solve = mech.mass_solver(q)   # factorised once per step, not per iteration
 
         def linear(z, r):
-            r_M, r_g = r[:n], r[n:n + m]
-            r_v = r[n + m:] if ggl else r_g
+            r_M, r_g = r[:2]
+            r_v = r[2] if ggl else r_g
             MinvR = solve(r_M)
             dLam = schur.solve(S0, cm * r_v - mech.G_times(q, t, MinvR))
             dx = -(MinvR + solve(mech.GT(q, t, dLam))) / cm
-            parts = [dx, dLam] + ([gram.solve(P0, r_v - r_g)] if ggl else [])
-            return jnp.concatenate(parts), jnp.maximum(jnp.max(jnp.abs(z)), data)
+            parts = (dx, dLam) + ((gram.solve(P0, r_v - r_g),) if ggl else ())
+            return parts, jnp.maximum(max_norm(z), data)
 
         return linear, S0.ok & P0.ok if ggl else S0.ok
 

@@ -5,6 +5,7 @@ from functools import lru_cache
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 import numpy as np
 import pytest
 
@@ -233,7 +234,9 @@ def test_iteration_matrix_conditioning_does_not_grow_as_h_shrinks(key):
     scaled, unscaled = [], []
     for h in (1e-2, 1e-5):
         residual, z0, _ = method.equations(mech, state, 0.0, h)
-        J = np.asarray(jax.jacfwd(residual)(z0))
+        # The unknowns and the rows are blocks; the matrix is over them flattened.
+        x0, unravel = ravel_pytree(z0)
+        J = np.asarray(jax.jacfwd(lambda x: ravel_pytree(residual(unravel(x)))[0])(x0))
         scaled.append(np.linalg.cond(J))
         # The same matrix for the unknowns (a_{n+1}, lambda_{n+1}, mu) and the equations
         # as written, without the scalings.
