@@ -233,7 +233,8 @@ class Rattle(FixedStep):
         guess = sol.z if schur.name == "dense" else mu
         # v1 = H_p(q1, p1) with M(q1) as factorised above: computed afresh where the loop
         # observes it, a configuration-dependent mass was factorised again (rigid-chain:N=
-        # 16384, one core: 164 ms per step of the loop with that, 146 without it).
+        # 16384, one core, alternating: 195 and 173 ms per step of the loop with that, 140
+        # and 161 without it).
         return ((q1, p1, solve1(p1), F1, S1, guess), newton_failure(sol.converged, ok),
                 sol.residual, counts)
 

@@ -36,8 +36,8 @@
  *   - position projection: simplified Newton (integrators/newton.py) on z = (p_half, q1, lam),
  *       r1 = p_half - p0 - h/2 (F(q0, p_half) - G(q0)^T lam),
  *       r2 = q1 - q0 - h/2 (M(q0)^{-1} + M(q1)^{-1}) p_half,      r3 = g(q1),
- *     (rattle takes r2 times M(q0)^{-1} M(q1), the same roots and corrections, since it
- *     has no M(q1)^{-1} without factorising M(q1); here the inverse is in closed form),
+ *     (rattle takes r2 times M(q0)^{-1} M(q1): the same roots and the same correction
+ *     formula, without factorising M(q1) at every iterate; here M^{-1} is in closed form),
  *     from z0 = (p0, q0 + h M(q0)^{-1} p0, the previous step's mu; zeros at the start), with
  *     the Jacobian frozen at q0 without the force Jacobian: h^2/2 S0 dlam = r3 - G0 (r2 + h
  *     M0^{-1} r1), dp = -r1 - h/2 G0^T dlam, dq = -r2 + h M0^{-1} dp, S0 the previous step's
