@@ -348,3 +348,31 @@ def test_this_process_has_one_xla_thread_and_all_its_cores():
             assert os.sched_getaffinity(int(tid)) == cores
         except ProcessLookupError:  # a thread that ended meanwhile
             pass
+
+
+@pytest.mark.slow
+def test_the_memory_benchmark_runs_the_method_and_step_it_is_given(capsys):
+    """``benchmarks.perf.ensemble``'s memory runs (fresh processes) take ``--memory-method``
+    and ``--memory-h``, and report the peak and every lane's status."""
+    from benchmarks.perf import ensemble
+
+    code = ensemble.main(["--methods", "--memory-lanes", "8", "--memory-steps", "20",
+                          "--memory-h", "0.002", "--memory-method",
+                          "rattle:linear_solver=dense", "--device", "cpu"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "rattle:linear_solver=dense on chain:N=8, 8 lanes, h = 0.002" in out
+    assert "2e+01 steps (cpu, dense linear solver" in out and "8 of 8 lanes ok" in out
+    assert "under 2 GiB at every step count: holds" in out
+
+
+@pytest.mark.parametrize("argv, what", [(["--methods", "nonsense"], "unknown integrator"),
+                                        (["--memory-method", "rattle:foo=1"], "option 'foo'"),
+                                        (["--problems", "nope"], "unknown problem")])
+def test_the_ensemble_benchmark_names_a_bad_method_or_problem_in_one_line(capsys, argv, what):
+    from benchmarks.perf import ensemble
+
+    with pytest.raises(SystemExit) as exit_:
+        ensemble.main([*argv, "--skip-memory"])
+    err = capsys.readouterr().err.strip()
+    assert exit_.value.code == 2 and what in err and len(err.splitlines()) == 1

@@ -32,7 +32,8 @@ The plain step
     bookkeeping.
 
 Memory
-    ``rattle`` on ``chain:N=8`` with 16384 lanes, in fresh processes: the peak resident set
+    ``--memory-method`` (``rattle``) on ``chain:N=8`` with 16384 lanes at ``h =``
+    :data:`MEMORY_H`, in fresh processes: the peak resident set
     (``VmHWM``) of the whole run (drawing the states, compiling, solving, reading back) at
     each of ``--memory-steps``, beside the bytes of the buffers XLA assigned to the compiled
     loop. The loop keeps per lane only its state, the window maxima and three samples, and
@@ -73,6 +74,7 @@ from benchmarks.records import CommandParser
 from integrators.base import Grid
 from linalg.dense import solve as dense_solve
 from problems.ensemble import draw
+from problems.spec import SpecError
 
 #: Lane-steps per second over one trajectory's steps per second, at :data:`BAR_LANES` lanes
 #: on the pendulum.
@@ -80,6 +82,10 @@ BARS = {"rattle": 3.0, "lobatto3ab3": 2.0}
 BAR_LANES = 1024
 #: Peak resident set of the 16384-lane chain run (bytes).
 MEMORY_BAR = 2 << 30
+#: Step of the memory runs: at h = 0.01, 3 of 1024 chain lanes failed within 2000 steps
+#: and the slowest lane took 11.7 Newton iterations per step (each step of an ensemble
+#: costs its slowest lane's); at h = 0.005 every lane was ok, with 8.1 (one core).
+MEMORY_H = 5e-3
 #: Bound on max |g| over the receiver ensemble's lanes, and on a lane's final state against
 #: its single run.
 RECEIVER_BAR = 1e-12
@@ -202,31 +208,30 @@ like_a_worker()
 import jax, integrators, problems
 from benchmarks.plan import ENSEMBLE_GRID, jax_device
 from integrators.base import Grid
-from linalg.dense import solve as dense_solve
 from problems.ensemble import draw
 lanes, steps, h = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
-device = jax_device(sys.argv[4])
+device, method = jax_device(sys.argv[4]), sys.argv[5]
 case = problems.make("chain:N=8").with_t_end(steps * h)
 q0s, v0s = draw(case, lanes, seed=0)
 with jax.default_device(device):
-    solve = integrators.make("rattle", h=h).prepare_ensemble(
+    solve = integrators.make(method, h=h).prepare_ensemble(
         case, Grid(case.t0, case.t_end, **ENSEMBLE_GRID), q0s, v0s)
     start = time.perf_counter()
     trajs = solve()
 stats = device.memory_stats() or {}
-print(json.dumps({"ok": sum(t.status == "ok" for t in trajs), "solve_s":
-                  time.perf_counter() - start, "peak_rss": peak_rss(),
+print(json.dumps({"ok": sum(t.status == "ok" for t in trajs), "solver": trajs[0].linear_solver,
+                  "solve_s": time.perf_counter() - start, "peak_rss": peak_rss(),
                   "platform": device.platform, "device_peak": stats.get("peak_bytes_in_use"),
                   "buffers": solve.compiled.buffer_bytes}))
 """
 
 
-def memory(lanes: int, counts: list[int], h: float, device: str) -> bool:
+def memory(lanes: int, counts: list[int], h: float, device: str, method: str) -> bool:
     """Peak memory of the chain ensemble at each step count, in fresh processes."""
-    print(f"\npeak memory of rattle on chain:N=8, {lanes} lanes, h = {h:g}, fresh processes:")
+    print(f"\npeak memory of {method} on chain:N=8, {lanes} lanes, h = {h:g}, fresh processes:")
     peaks = []
     for steps in counts:
-        command = [sys.executable, "-c", CHILD, str(lanes), str(steps), repr(h), device]
+        command = [sys.executable, "-c", CHILD, str(lanes), str(steps), repr(h), device, method]
         ending, stdout, stderr, polled = run_process(command, math.inf, None)
         if ending:
             print(f"  {steps:.0e} steps: ended with {ending}: {stderr.strip()[-500:]}")
@@ -234,7 +239,7 @@ def memory(lanes: int, counts: list[int], h: float, device: str) -> bool:
         info = json.loads(stdout.strip().splitlines()[-1])
         peak = info["peak_rss"] or polled
         peaks.append(peak)
-        on = info["platform"]
+        on = f"{info['platform']}, {info['solver']} linear solver"
         if info["device_peak"] is not None:
             on += f", device peak {info['device_peak'] / 2**20:.0f} MiB"
         if info["buffers"] is not None:
@@ -286,6 +291,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="seconds per solve above which an ensemble size is skipped")
     parser.add_argument("--memory-lanes", type=int, default=16384)
     parser.add_argument("--memory-steps", type=float, nargs="+", default=[1e3, 1e4, 1e5])
+    parser.add_argument("--memory-h", type=float, default=MEMORY_H,
+                        help="step size of the memory runs (module notes)")
+    parser.add_argument("--memory-method", default="rattle",
+                        help="method spec of the memory runs, such as "
+                             "rattle:linear_solver=dense")
     parser.add_argument("--skip-memory", action="store_true")
     parser.add_argument("--plain", action="store_true",
                         help="also time the bare RATTLE step on the pendulum (module notes)")
@@ -294,6 +304,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="where the ensembles run (auto: a GPU where JAX sees one)")
     args = parser.parse_args(argv)
+    try:  # a misspelt method or problem is one line here, not a traceback later
+        for spec in [*args.methods, args.memory_method]:
+            integrators.make(spec)
+        for spec in args.problems:
+            problems.resolve(spec)
+    except SpecError as exc:
+        parser.error(str(exc))
     load = like_a_worker()
     device = jax_device(args.device)
     if device is None:
@@ -326,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.receiver:
         receiver(device)
     ok = args.skip_memory or memory(args.memory_lanes, [int(n) for n in args.memory_steps],
-                                    args.h, device.platform)
+                                    args.memory_h, device.platform, args.memory_method)
     print(f"load average (1 min) at end: {like_a_worker():.2f}")
     return 0 if ok else 1
 
