@@ -221,6 +221,26 @@ def test_peak_memory_is_the_program_s_own_not_its_parent_s():
     assert int(out.split()[-1]) < 100 << 20
 
 
+def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypatch):
+    """A fresh process gets the workers' flags (the one-kernel flag among them); one that
+    has computed keeps its own, which XLA read at its start and the persistent cache's keys
+    hash: changed, every later compilation of the process missed the cache."""
+    from benchmarks import pool
+    from integrators.loop import KERNEL_FLAG
+
+    ending, out, _, _ = processes.run_process(
+        [sys.executable, "-c", "import os; from benchmarks.perf.processes import like_a_worker; "
+                               "like_a_worker(); print(os.environ['XLA_FLAGS'])"],
+        120.0, {**os.environ, "XLA_FLAGS": ""})
+    assert ending == "" and KERNEL_FLAG in out.split()
+    flags = os.environ.get("XLA_FLAGS", "")
+    for name in ("XLA_FLAGS", *pool.thread_environment()):  # restored after the test
+        monkeypatch.setenv(name, os.environ.get(name, ""))
+    assert KERNEL_FLAG not in flags.split()  # conftest: the tests compile without it
+    processes.like_a_worker()
+    assert os.environ["XLA_FLAGS"] == flags
+
+
 @pytest.mark.parametrize("argv", [["--n", "1"], ["--families", "no-such-method"],
                                   ["--h", "chain=-1"], ["--h", "pendulum=1e-3"],
                                   ["--limit", "0"], ["--steps", "0"], ["--rtol", "2"],
