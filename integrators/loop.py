@@ -228,7 +228,9 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
     scalar for all of them: every live lane is at the same step ``k``, a loop goes on while
     some lane is live, and a lane that has failed is carried unchanged (its own step count,
     ``lane``, stops there). A failed lane is still computed, from a live lane's state
-    (module notes).
+    (module notes). A lane whose own count is ahead of ``k`` waits, unchanged too, until
+    ``k`` reaches it, and where no lane is at ``k`` the loop goes to the first one ahead:
+    the lanes retaken by :func:`march` go on from the steps they failed at, which differ.
     """
     t0, n_inv = grid.t0, len(mech.system.invariants)
     lift = jax.vmap if lanes else (lambda f, **_: f)
@@ -244,6 +246,11 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
         return jax.lax.cond(jnp.all(mask), lambda: new, lambda: jax.tree_util.tree_map(
             lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b),
             new, old))
+
+    def at(k, lane, code):
+        # The lanes live at step k: neither failed nor waiting (docstring). One trajectory
+        # is never waiting, and its loop tests its code alone.
+        return (code == 0) & (lane == k) if lanes else code == 0
 
     def stand_in(active, carry):
         # A failed lane is still computed (the lanes run in step) and its result dropped.
@@ -264,12 +271,12 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
         """
 
         def cond(state):
-            k, _, _, code, *_ = state
-            return (k < stop) & live(code == 0)
+            k, lane, _, code, *_ = state
+            return (k < stop) & live(at(k, lane, code))
 
         def body(state):
             k, lane, carry, code, resid, peak, counts = state
-            active = code == 0
+            active = at(k, lane, code)
             new, code1, resid1, inc, (q, v) = tried(stand_in(active, carry), t0 + k * h, h)
             good = active & (code1 == 0)
             m = measure(t0 + (k + 1) * h, q, v, E0, I0)
@@ -303,11 +310,15 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
         axis = E0.ndim
 
         def cond(state):
-            k, _, _, code, *_ = state
-            return (k < N) & live(code == 0)
+            k, lane, _, code, *_ = state
+            return (k < N) & live((code == 0) & (lane < N) if lanes else code == 0)
 
         def body(state):
             k, lane, carry, code, resid, wins, samp_q, samp_v, counts = state
+            if lanes:
+                # On to the first step that a lane neither failed nor done is at: k itself
+                # but where every lane at k has failed and others wait further on.
+                k = jnp.maximum(k, jnp.min(jnp.where((code == 0) & (lane < N), lane, N)))
             # Step k lies in window w = k W // N, which ends before step ((w + 1) N + W - 1)
             # // W; the segment also ends where the next sample is due.
             w = k * W // N
@@ -342,12 +353,13 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     from that step, so the run's result is that of the loop with the fallback throughout:
     the same steps up to the one that failed, which it takes again, and the same work
     counted (the failed attempt's is not). An ensemble's loop is compiled without the
-    fallback too, and the lanes that failed in it run again from the start with it, as an
-    ensemble of their own (they failed at different steps, and lanes run in step). An
-    ensemble compiled with the fallback paid for it where no lane took it: 1024 lanes of
-    lobatto3ab3 on the pendulum set up in 2.0 to 2.5 s with it and 1.5 to 1.8 s without
-    (a warm compilation cache), and its step alone took 1.46 us per lane with it and 0.78
-    without (one core, scratch script), though in the whole loop the rates were alike.
+    fallback too, and the lanes that failed in it go on with it from the steps they failed
+    at, as an ensemble of their own (its loop starts at the first of those steps, and each
+    lane waits until the loop reaches its own: :func:`_loop`). An ensemble compiled with
+    the fallback paid for it where no lane took it: 1024 lanes of lobatto3ab3 on the
+    pendulum set up in 2.0 to 2.5 s with it and 1.5 to 1.8 s without (a warm compilation
+    cache), and its step alone took 1.46 us per lane with it and 0.78 without (one core,
+    scratch script), though in the whole loop the rates were alike.
 
     Parameters
     ----------
@@ -433,17 +445,17 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             return exact_loop()[1]((lane, lane, carry, jnp.zeros_like(code),
                                     jnp.zeros_like(resid), *rest), E0, I0, *args)
         q, v = qv
-        # The lanes run in step, so a lane cannot go on from its own failed step beside
-        # the others: the lanes that failed run again from the start, together, with the
+        # The lanes that failed go on from the steps they failed at, together, with the
         # fallback (one more compiled loop, of a power-of-two width so that few widths
         # are compiled; padded with repeats of the first), and their results replace
-        # theirs. Their steps up to the failure are those of the first run, to round-off.
+        # theirs: only the steps from each lane's failure on are taken again.
         failed = np.flatnonzero(np.asarray(code))
         w = 1 << int(len(failed) - 1).bit_length()
         pick = jnp.asarray(np.concatenate([failed, np.full(w - len(failed), failed[0])]))
-        first, exact = exact_loop(w)
-        out, (sub_q, sub_v) = exact(*first(jax.tree_util.tree_map(lambda a: a[pick], carry0)),
-                                    *args)
+        sub = jax.tree_util.tree_map(lambda a: a[pick], (lane, carry, jnp.zeros_like(code),
+                                                         jnp.zeros_like(resid), *rest))
+        out, (sub_q, sub_v) = exact_loop(w)[1]((jnp.min(sub[0]), *sub), E0[pick], I0[pick],
+                                               *args)
         at = jnp.asarray(failed)
         lane, carry, code, resid, *rest, q, v = [
             jax.tree_util.tree_map(lambda a, b: a.at[at].set(b[:len(failed)]), x, y)

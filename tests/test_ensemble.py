@@ -115,6 +115,44 @@ def test_a_failed_lane_does_not_hold_the_others_at_its_iteration_limit():
     assert all(c == 1 for i in (0, 1, 3) for c in seen[i])
 
 
+def test_lanes_retaken_with_the_fallback_go_on_from_the_steps_they_failed_at():
+    # Traced without the fallback (as the first loop of a structured path is), the step
+    # fails for lane 1 at step 3 and for lane 3 at step 6; with it, never. The loop with the
+    # fallback takes those two lanes from their own failed steps: from step 3 on, lane 3
+    # waiting (stepped from lane 1's state, its result dropped) until step 6.
+    import jax.numpy as jnp
+    from integrators.base import Failure
+    from integrators.loop import march
+    from integrators.newton import _deferred
+    case = problems.make("pendulum").with_t_end(1.0)
+    q0s, v0s = draw(case, 4, seed=0)
+    h, seen = 0.1, []
+
+    def step(carry, t, h):
+        q, v, lane = carry
+        k = jnp.round((t - case.t0) / h)
+        fails = ((lane == 1) & (k == 3)) | ((lane == 3) & (k == 6))
+        code = jnp.where(fails & _deferred.get(), Failure.NEWTON, Failure.NONE)
+        jax.debug.callback(lambda i, k, late: seen.append((int(i), int(k), bool(late))),
+                           lane, k, not _deferred.get())
+        return (q + h * v, v, lane), code, jnp.asarray(0.0), {"n_newton": jnp.asarray(1)}
+
+    carry0 = (jnp.asarray(q0s), jnp.asarray(v0s), jnp.arange(4))
+    lanes = march(case.mech, _grid(case), h, carry0, step, lambda carry: carry[:2],
+                  linear_solver="banded", lanes=True)()
+    assert [str(lane.status) for lane in lanes] == ["ok"] * 4
+    assert [lane.counts["n_steps"] for lane in lanes] == [10] * 4
+    assert [lane.counts["n_newton"] for lane in lanes] == [10] * 4  # failed attempts not counted
+    for i, lane in enumerate(lanes):
+        np.testing.assert_allclose(lane.q_final, q0s[i] + 10 * h * v0s[i], rtol=0, atol=1e-14)
+    first = [s for s in seen if not s[2]]
+    late = sorted((i, k) for i, k, retaken in seen if retaken)
+    assert len(first) == 40  # four lanes at each of ten steps
+    # Two lanes at steps 3 to 9: lane 1 at each, and for lane 3 lane 1 again until step 6.
+    assert late == sorted([(1, k) for k in range(3, 10)] + [(1, 3), (1, 4), (1, 5)]
+                          + [(3, k) for k in range(6, 10)])
+
+
 @pytest.mark.parametrize("method", ["baumgarte-tsit5", "baumgarte-dopri5",
                                     "baumgarte-dopri8"])
 def test_adaptive_lanes_equal_their_single_runs(method):
