@@ -54,6 +54,15 @@ def _mib(nbytes) -> str:
     return "" if nbytes is None else f"{nbytes / 2**20:.0f}"
 
 
+def _processes(k: int) -> str:
+    """How many fresh processes each point ran in, and which one is reported."""
+    if k == 1:
+        return "each point in a fresh process"
+    return (f"each point in {k} fresh processes, in {k} rounds over the points, reported by "
+            f"its median process (by time per step; the fastest and slowest of the {k} in "
+            f"scaling.csv)")
+
+
 def section(doc: Document, data: dict, draw) -> None:
     """Append the scaling section to ``doc``, its figure drawn by ``draw``
     (:class:`reports.figures.Drawing`)."""
@@ -63,7 +72,8 @@ def section(doc: Document, data: dict, draw) -> None:
     cap = f"{s['memory_limit'] / 2**30:g} GiB" if s["memory_limit"] else "none"
     doc.add(Para(
         f"Every family on {', '.join(s['problems'])} for N = "
-        f"{', '.join(map(str, s['n']))}, each point in a fresh process: {s['steps']} steps of "
+        f"{', '.join(map(str, s['n']))}, " + _processes(s.get("processes", 1))
+        + f": {s['steps']} steps of "
         f"{steps}; adaptive families at rtol = atol = {fmt(s['rtol'])} over the same horizon, "
         f"per internal step. Time per step is the median wall-clock time of the timed solves "
         f"divided by the steps taken: the compiled loop with its per-step measurement of |g|, "

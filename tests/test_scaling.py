@@ -221,10 +221,11 @@ def test_peak_memory_is_the_program_s_own_not_its_parent_s():
     assert int(out.split()[-1]) < 100 << 20
 
 
-def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypatch):
+def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypatch, capsys):
     """A fresh process gets the workers' flags (the one-kernel flag among them); one that
     has computed keeps its own, which XLA read at its start and the persistent cache's keys
-    hash: changed, every later compilation of the process missed the cache."""
+    hash: changed, every later compilation of the process missed the cache. It says that
+    its flags were left as they were."""
     from benchmarks import pool
     from integrators.loop import KERNEL_FLAG
 
@@ -239,12 +240,15 @@ def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypa
     assert KERNEL_FLAG not in flags.split()  # conftest: the tests compile without it
     processes.like_a_worker()
     assert os.environ["XLA_FLAGS"] == flags
+    # ...and says so, since its timings are not a worker's.
+    assert capsys.readouterr().err.startswith("note: XLA started before this process")
 
 
 @pytest.mark.parametrize("argv", [["--n", "1"], ["--families", "no-such-method"],
                                   ["--h", "chain=-1"], ["--h", "pendulum=1e-3"],
                                   ["--limit", "0"], ["--steps", "0"], ["--rtol", "2"],
-                                  ["--steps", "many"], ["--problems", "pendulum"]])
+                                  ["--steps", "many"], ["--problems", "pendulum"],
+                                  ["--processes", "0"]])
 def test_bad_options_exit_2_with_one_line(argv, capsys):
     try:
         code = scaling.main(argv)
@@ -277,6 +281,44 @@ def test_a_family_that_fails_stops_and_an_error_exits_1(tmp_path, monkeypatch, c
     # N = 2 and 4 reach none of the bars' sizes: each is printed as not measured.
     out = capsys.readouterr().out
     assert "\nbars:\n" in out and "FAIL" not in out and "PASS" not in out
+
+
+def test_each_point_is_its_median_process_and_the_ratio_to_c_that_of_the_medians():
+    """Three rounds: each point is reported by its median process, with the fastest and
+    slowest beside it; the ratio to C is recomputed from the medians; a point that failed
+    in some round is reported as that round's."""
+    rounds = [[_ok("chain", C_NAME, 64, c), _ok("chain", "rattle", 64, r, rss=k),
+               _ok("chain", "lobatto3ab3", 64, 1.0) if k != 2 else
+               Point("chain", 64, "lobatto3ab3", "timeout", "killed")]
+              for k, (c, r) in enumerate([(1.0, 5.0), (2.0, 3.0), (1.5, 4.0)])]
+    points = scaling.median_points(rounds)
+    c, rattle, lobatto = points
+    assert (c.wall_per_step, c.processes) == (1.5, 3)
+    assert (rattle.wall_per_step, rattle.peak_rss) == (4.0, 2)   # the median process's own
+    assert (rattle.wall_min_per_step, rattle.wall_max_per_step) == (3.0, 5.0)
+    assert rattle.ratio_c == pytest.approx(4.0 / 1.5)
+    assert lobatto.status == "timeout" and lobatto.processes is None
+    # Even counts take the lower middle process.
+    two = scaling.median_points([[_ok("chain", "rattle", 64, w)] for w in (2.0, 1.0)])
+    assert two[0].wall_per_step == 1.0 and two[0].wall_max_per_step == 2.0
+
+
+@pytest.mark.slow
+def test_processes_run_each_point_in_rounds(tmp_path, capsys):
+    """``--processes 2`` runs every point twice in fresh processes and reports medians;
+    the report says so."""
+    code = scaling.main(["--problems", "chain", "--n", "2", "--steps", "5",
+                         "--h", "chain=0.05", "--limit", "120", "--families", "rattle",
+                         "--processes", "2", "--repeats", "1", "--out", str(tmp_path)])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "round 1 of 2" in out and "round 2 of 2" in out
+    data = json.loads((tmp_path / "scaling.json").read_text())
+    assert data["settings"]["processes"] == 2
+    for p in data["points"]:
+        assert p["status"] == "ok" and p["processes"] == 2
+        assert p["wall_min_per_step"] <= p["wall_per_step"] <= p["wall_max_per_step"]
+    assert "each point in 2 fresh processes" in (tmp_path / "scaling.md").read_text()
 
 
 def test_the_report_gets_the_scaling_section(tmp_path, capsys):

@@ -10,13 +10,15 @@ Rates
     (:data:`benchmarks.plan.ENSEMBLE_GRID`) on both. Each figure is a rate of steps: steps
     per second for one trajectory, lane-steps (lanes times steps) per second for an
     ensemble, timed around the whole ``solve()`` (the compiled loop and the read-back of
-    the trajectories), after set-up and compilation, the median of ``--repeats`` solves. The
-    C yardstick (``yardstick/rattle_sps.c``, the same RATTLE step on sps-receiver, see
-    :mod:`benchmarks.perf.throughput`) gives plain C's steps per second beside them. This
-    process is set up as the suite's workers are (one intra-op thread, the one-kernel XLA
-    flag, :func:`benchmarks.perf.processes.like_a_worker`): one core. The one trajectory
-    runs on the CPU, as the suite's single runs do; the ensembles on ``--device`` (``auto``:
-    a GPU where JAX sees one, else the CPU; the platform is printed with each figure).
+    the trajectories), after set-up and compilation, the median of at least ``--repeats``
+    solves (autorange, :func:`timed`). The C yardstick (``yardstick/rattle_sps.c``, the
+    same RATTLE step on sps-receiver, see :mod:`benchmarks.perf.throughput`) gives plain
+    C's steps per second beside them. This process is set up as the suite's workers are
+    (one intra-op thread, the one-kernel XLA flag,
+    :func:`benchmarks.perf.processes.like_a_worker`), before it first computes: one core.
+    The one trajectory runs on the CPU, as the suite's single runs do; the ensembles on
+    ``--device`` (``auto``: a GPU where JAX sees one, else the CPU; the platform is printed
+    with each figure).
 
     The bars (issue figures): at 1024 lanes on the pendulum, ``rattle``'s lane-steps per
     second at least :data:`BARS` ``["rattle"]`` times its one-trajectory steps per second,
@@ -55,6 +57,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import statistics
 import sys
 import tempfile
@@ -67,6 +70,7 @@ import numpy as np
 
 import integrators
 import problems
+from benchmarks.execute import more
 from benchmarks.perf.processes import (compile_yardstick, like_a_worker, run_process)
 from benchmarks.perf.throughput import run_c
 from benchmarks.plan import DEVICES, ENSEMBLE_GRID, jax_device
@@ -93,9 +97,14 @@ RECEIVER_BAR = 1e-12
 
 
 def timed(solve, repeats: int) -> tuple[float, object]:
-    """Median seconds of ``repeats`` solves, and the last result."""
-    times = []
-    for _ in range(repeats):
+    """Median seconds of the solves, timed as the suite times a run (autorange,
+    :func:`benchmarks.execute.more`: ``repeats`` solves at least, more while they add up to
+    less than a fifth of a second, within its cap), and the last result. The 1e4 steps of
+    one pendulum trajectory take about a millisecond: ten solves, not three. Their rate
+    still differs from one process to the next on a shared machine (6.5e6 and 9.4e6 steps
+    per second for rattle in two processes, the median of 21 solves each, load 0.9)."""
+    times: list[float] = []
+    while not times or more(times, repeats):
         start = time.perf_counter()
         out = solve()
         times.append(time.perf_counter() - start)
@@ -287,7 +296,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="*", default=list(BARS),
                         help="methods whose rates are measured (none: only the other parts)")
     parser.add_argument("--problems", nargs="+", default=["pendulum", "sps-receiver"])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="timed solves at least (autorange; the median is reported)")
     parser.add_argument("--budget", type=float, default=30.0,
                         help="seconds per solve above which an ensemble size is skipped")
     parser.add_argument("--memory-lanes", type=int, default=16384)
@@ -305,6 +315,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="where the ensembles run (auto: a GPU where JAX sees one)")
     args = parser.parse_args(argv)
+    # Before anything computes: resolving a problem starts XLA's client, and flags set
+    # after that are not applied.
+    load = like_a_worker()
     try:  # a misspelt method or problem is one line here, not a traceback later
         for spec in [*args.methods, args.memory_method]:
             integrators.make(spec)
@@ -312,7 +325,6 @@ def main(argv: list[str] | None = None) -> int:
             problems.resolve(spec)
     except SpecError as exc:
         parser.error(str(exc))
-    load = like_a_worker()
     device = jax_device(args.device)
     if device is None:
         parser.error("--device gpu, but JAX sees no GPU on this machine")
@@ -345,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         receiver(device)
     ok = args.skip_memory or memory(args.memory_lanes, [int(n) for n in args.memory_steps],
                                     args.memory_h, device.platform, args.memory_method)
-    print(f"load average (1 min) at end: {like_a_worker():.2f}")
+    print(f"load average (1 min) at end: {os.getloadavg()[0]:.2f}")
     return 0 if ok else 1
 
 
