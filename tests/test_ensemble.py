@@ -419,6 +419,31 @@ def test_the_ensemble_benchmark_names_a_bad_method_or_problem_in_one_line(capsys
     assert exit_.value.code == 2 and len(lines) == 1 and what in lines[0]
 
 
+def test_the_ensemble_benchmark_times_the_one_trajectory_in_turn_with_the_ensemble():
+    """Each ensemble solve is followed by a burst of one-trajectory solves, so the two rates
+    of a ratio come from the same stretch of time."""
+    import time
+
+    from benchmarks.perf import ensemble
+
+    calls = []
+
+    def batch():
+        calls.append("E")
+        time.sleep(0.03)
+        return "lanes"
+
+    def one():
+        calls.append("S")
+        time.sleep(0.01)
+
+    ens_s, one_s, out = ensemble.in_turn(batch, one, repeats=3)
+    assert out == "lanes" and calls[0] == "E" and calls.count("E") >= 3
+    bursts = "".join(calls).split("E")[1:]
+    assert len(bursts) == calls.count("E") and all(b and set(b) == {"S"} for b in bursts)
+    assert 0.03 <= ens_s < 0.2 and 0.01 <= one_s < 0.1
+
+
 @pytest.mark.slow
 def test_the_ensemble_benchmark_sets_itself_up_as_a_worker_before_it_computes():
     """Run as a program, the benchmark gets the workers' XLA flags (the one-kernel flag):
