@@ -95,14 +95,14 @@ What each number is
 With ``--processes K`` every point runs in ``K`` fresh processes, in ``K`` rounds over all
 the points (each round as above), and the point reported is its median process: the one
 whose time per step is the median (the lower of the two middle ones for even ``K``), with
-the least and greatest time per step of the ``K`` beside it. On a shared machine the time per
-step varies by a fifth or more from one process to the next (rigid-chain:N=16384, rattle's
-step: 113 to 139 ms, each process's median, in six processes, load 1 to 2), and the
-growth bar's ratio of two processes with it (20.1x to 27.8x in runs of one process per
-point); a verdict should rest on the median of several interleaved processes. The ratio to C is that of
-the two median processes. A point that is not ``ok`` in some round is reported as that
-round's (the first such); a family that stopped in one round is not run at that N or
-larger in later rounds.
+the least and greatest time per step of the ``K`` beside it. On a shared machine the time
+per step varies by a fifth or more from one process to the next (rigid-chain:N=16384,
+rattle's step: 113 to 139 ms, each process's median, in six processes, load 1 to 2), and
+the growth bar's ratio of two processes with it (20.1x to 27.8x in runs of one process per
+point); a verdict should rest on the median of several interleaved processes. The ratio
+to C is that of the two median processes. A point that is not ``ok`` in some round is
+reported as that round's (the first such); a family that stopped in one round is not run
+at that N or larger in later rounds.
 
 A point runs under a time limit (``--limit``, default :data:`LIMIT` s for the whole process)
 and an address-space cap (``--memory-limit``). A point that fails, runs out of time or out
@@ -799,7 +799,6 @@ def main(argv: list[str] | None = None) -> int:
     started = time.time()
     load_before = os.getloadavg()[0]
     ok = True
-    points: list[Point] = []
     agreements: list[dict] = []
     print(f"{settings['steps']} steps per point; h = "
           + ", ".join(f"{settings['h'][p]:g} ({p})" for p in settings["problems"])
