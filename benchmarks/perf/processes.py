@@ -46,7 +46,7 @@ def like_a_worker() -> float:
     took 53 s, against 2.5 s with them read from the cache. Such a process is told so on
     stderr, since its timings are not a worker's: a benchmark that computed before calling
     this (resolving its problems) had timed one trajectory without the one-kernel flag, at
-    about an eighth of a worker's rate.
+    a quarter to a tenth of a worker's rate.
     """
     from jax._src import xla_bridge
 
