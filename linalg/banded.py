@@ -19,7 +19,7 @@ import numpy as np
 
 from linalg.dense import RANK_RTOL, Factor, Schur, unit_diagonal
 from linalg.compiled import device_index
-from linalg.pattern import Pattern, gather
+from linalg.pattern import Pattern, gather, row_sum
 
 #: Largest core bandwidth the banded Cholesky takes; wider bands go to SuperLU (its cost
 #: per row grows like the bandwidth squared, and the band solve is unrolled to this width).
@@ -185,7 +185,7 @@ class Banded(Schur):
             products = gather(Gx, first) * gather(Gx, second)
             if dx is not None:
                 products = products * gather(dx, first)
-            sums.append(jnp.sum(products, axis=1))
+            sums.append(row_sum(products))
         Sb = gather(jnp.concatenate(sums + [jnp.zeros(1)]), place).reshape(mc, w + 1)
         Dc = unit_diagonal(Sb[:, 0])
         shifted = jnp.stack([jnp.concatenate([jnp.zeros(k), Dc[:mc - k]]) for k in range(w + 1)], 1)
@@ -193,7 +193,7 @@ class Banded(Schur):
         L = band_cholesky(Ss)
         absband = jnp.abs(Sb)
         padded = jnp.concatenate([absband, jnp.zeros((w, w + 1))])
-        norm = jnp.max(jnp.sum(absband, 1) - absband[:, 0]
+        norm = jnp.max(row_sum(absband) - absband[:, 0]
                        + sum(padded[k:k + mc, k] for k in range(w + 1)))
         if nb == 0:
             return Factor((L, Dc, None, None, None, None), norm, jnp.all(jnp.isfinite(L)))

@@ -46,7 +46,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from linalg.banded import band_cholesky, band_solve, divide, unroll
 from linalg.dense import RANK_RTOL, Factor, Schur, unit_diagonal
-from linalg.pattern import gather
+from linalg.pattern import gather, row_sum
 
 #: Largest bandwidth of the reordered ``K`` that the ``kkt`` solver takes (bricard, 48 unknowns
 #: in all, gives 25; four-bar 7 at any N): its cost per row
@@ -288,14 +288,14 @@ class KKT(Schur):
         Kb = (self._constant + gather(Gx, self._where)).reshape(-1, w + 1)
         c = self._coord_scale
         scaled = jnp.concatenate([Gv * gather(c, self._cols), jnp.zeros(1)])
-        r = unit_diagonal(jnp.sum(gather(scaled ** 2, self._row_table), axis=1))
+        r = unit_diagonal(row_sum(gather(scaled ** 2, self._row_table)))
         s = gather(jnp.concatenate([c, r]), self._order)
         N = s.shape[0]
         shifted = jnp.stack([jnp.concatenate([jnp.ones(k), s[:N - k]]) for k in range(w + 1)], 1)
         X, D = band_ldl(Kb * s[:, None] * shifted)
         absG = jnp.abs(Gx)
-        norm = (jnp.max(jnp.sum(gather(absG, self._row_table), axis=1)) * self._minv_norm
-                * jnp.max(jnp.sum(gather(absG, self._col_table), axis=1)))
+        norm = (jnp.max(row_sum(gather(absG, self._row_table))) * self._minv_norm
+                * jnp.max(row_sum(gather(absG, self._col_table))))
         ok = jnp.all(jnp.isfinite(X)) & jnp.all(jnp.isfinite(D))
         return Factor((X, D, s), norm, ok)
 
