@@ -212,7 +212,6 @@ class Banded(Schur):
         return Factor((L, Dc, Db, Scb_s, X, LT), norm, ok)
 
     def solve(self, F: Factor, rhs):
-        pat = self.pattern
         L, Dc, Db, Scb_s, X, LT = F.data
         r = rhs[:, None] if rhs.ndim == 1 else rhs
         rc = gather(r, self.core) * Dc[:, None]
