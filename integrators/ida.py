@@ -191,27 +191,24 @@ def sparse_iteration_matrix(mech: Mechanics, formulation: str, t0: float, y0, yp
         return F(t, z, yp + (z - y))
 
     def build(jac):
+        # IDA takes the entries in CSC order: the Jacobian gathers them in that order.
         pattern = sp.csc_matrix((np.arange(1, jac.nnz + 1, dtype=np.float64),
                                  (jac.rows, jac.cols)), shape=(len(y0), len(y0)))
-        order = pattern.data.astype(np.int64) - 1
+        jac = jac.reordered(pattern.data.astype(np.int64) - 1)
 
         def data(t, y, yp, cj):
-            values = jac.values(y, lambda z: F(t, z, yp + cj * (z - y)))
-            return jnp.take(values, jnp.asarray(order))
+            return jac.values(y, lambda z: F(t, z, yp + cj * (z - y)))
 
-        return pattern, order, compile_lifted(data, t0, y0, yp0, 1.0)
+        return jac, pattern, compile_lifted(data, t0, y0, yp0, 1.0)
 
     assembled = iteration_pattern(mech, formulation)
     if assembled is not None:
-        jac = SparseJacobian(residual, y, assembled)
-        pattern, order, matrix = build(jac)
+        jac, pattern, matrix = build(SparseJacobian(residual, y, assembled))
         point = np.random.default_rng(1).standard_normal(len(y0))
-        entries = np.empty(jac.nnz)
-        entries[order] = np.asarray(matrix(0.0, point, yp0 + (point - y0), 1.0))
+        entries = np.asarray(matrix(0.0, point, yp0 + (point - y0), 1.0))
         if jac.agrees(jnp.asarray(point), entries):
             return pattern, matrix, jac.nnz
-    jac = SparseJacobian(residual, y)
-    pattern, _, matrix = build(jac)
+    jac, pattern, matrix = build(SparseJacobian(residual, y))
     return pattern, matrix, jac.nnz
 
 

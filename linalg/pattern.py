@@ -7,6 +7,7 @@ with ``O(nnz)`` gathers instead of dense ``m x n`` matrices.
 
 from __future__ import annotations
 
+import copy
 from functools import cached_property
 from typing import Callable
 
@@ -20,7 +21,8 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from linalg.compiled import compile_lifted, device_index, give_back_heap
 
-#: Entries of the directions that :meth:`SparseJacobian.values` differentiates along at once.
+#: Most entries of the directions that :meth:`SparseJacobian.values` differentiates along
+#: at once; with more, it takes them one by one.
 BATCH_ENTRIES = 1 << 21
 
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
@@ -117,7 +119,7 @@ class SparseJacobian:
         seeds[colour[self.cols[rest]], self.cols[rest]] = 1.0
         self.seeds = jnp.asarray(seeds)
         # Where each entry of the pattern is read from, in the stacked passes
-        # [J seeds^T (m x c) | J e_j for dense j (m x d_c)] and [e_i^T J (d_r x n)].
+        # [seeds J^T (c x m) ; e_j^T J^T for dense j (d_c x m)] and [e_i^T J (d_r x n)].
         where_col = np.full(n, -1)
         where_col[self.dense_cols] = np.arange(len(self.dense_cols))
         where_row = np.full(m, -1)
@@ -125,8 +127,7 @@ class SparseJacobian:
         forward = np.where(dense_cols[self.cols], self.n_colours + where_col[self.cols],
                            colour[self.cols].clip(0))
         from_rows = dense_rows[self.rows]
-        self.forward_index = jnp.asarray(self.rows * (self.n_colours + len(self.dense_cols))
-                                         + forward)
+        self.forward_index = jnp.asarray(forward * m + self.rows)
         self.reverse_index = jnp.asarray(where_row[self.rows].clip(0) * n + self.cols)
         self.from_rows = jnp.asarray(from_rows)
         self.f = f
@@ -157,19 +158,41 @@ class SparseJacobian:
         """
         f = self.f if f is None else f
         directions = jnp.concatenate([self.seeds, jnp.eye(self.shape[1])[self.dense_cols]])
-        # A few directions at a time: all of them at once hold every intermediate of f that
-        # many times (26 directions on rigid-chain:N=16384: about 1 GB of temporaries).
-        batch = max(1, BATCH_ENTRIES // max(self.shape))
-        forward = jax.lax.map(lambda d: jax.jvp(f, (x,), (d,))[1], directions,
-                              batch_size=batch).T
+        forward = self._passes(lambda d: jax.jvp(f, (x,), (d,))[1], directions)
         values = gather(forward.ravel(), self.forward_index)
         if len(self.dense_rows):
             pullback = jax.vjp(f, x)[1]
-            reverse = jax.lax.map(lambda e: pullback(e)[0],
-                                  jnp.eye(self.shape[0])[self.dense_rows], batch_size=batch)
+            reverse = self._passes(lambda e: pullback(e)[0],
+                                   jnp.eye(self.shape[0])[self.dense_rows])
             values = jnp.where(self.from_rows, gather(reverse.ravel(), self.reverse_index),
                                values)
         return values
+
+    def _passes(self, one, seeds: jax.Array) -> jax.Array:
+        """``one(s)`` for every row ``s`` of ``seeds``, stacked.
+
+        All at once where they are few, one by one where they are not: all at once hold
+        every intermediate of ``f`` that many times (26 directions on rigid-chain:N=16384:
+        about 1 GB of temporaries), and batches of a few cost more than either (that
+        Jacobian: 586 ms in batches of 5, 525 ms one by one, 526 ms all at once).
+        """
+        if len(seeds) * max(self.shape) > BATCH_ENTRIES:
+            return jax.lax.map(one, seeds)
+        return jax.vmap(one)(seeds)
+
+    def reordered(self, order: np.ndarray) -> SparseJacobian:
+        """The same Jacobian with its entries in the order ``order`` (a permutation of
+        ``range(nnz)``: entry ``k`` of the result is entry ``order[k]`` of this one).
+
+        :meth:`values` then gathers each entry from the passes straight to its place, where
+        a permutation of its result would read and write every entry once more.
+        """
+        other = copy.copy(self)
+        other.rows, other.cols = self.rows[order], self.cols[order]
+        other.forward_index = self.forward_index[order]
+        other.reverse_index = self.reverse_index[order]
+        other.from_rows = self.from_rows[order]
+        return other
 
 
 class Pattern:
