@@ -13,6 +13,7 @@ from integrators.base import Grid
 from integrators.ida import FORMULATIONS, consistent_values, iteration_pattern
 from problems.mechanics import System
 from linalg.blocks import Blocks
+from linalg import pattern
 from linalg.pattern import SparseJacobian
 from helpers import solve
 
@@ -247,7 +248,7 @@ def test_ida_sparse_iteration_matrix_gives_the_dense_result(spec):
 @pytest.mark.slow
 @pytest.mark.parametrize("spec", ["sps-ring:N=40", "andrews", "bricard"])
 @pytest.mark.parametrize("form", sorted(FORMULATIONS))
-def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form):
+def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form, monkeypatch):
     # sps-ring:N=40's hub gives the iteration matrix dense rows and dense columns, which
     # are evaluated one by one beside the coloured rest.
     case = problems.make(spec)
@@ -265,8 +266,20 @@ def test_sparse_jacobian_with_dense_lines_equals_forward_mode(spec, form):
         assert jac.n_colours + len(jac.dense_rows) + len(jac.dense_cols) < len(y0) // 10
     J = np.asarray(jax.jacfwd(f)(y))
     S = np.zeros_like(J)
-    S[jac.rows, jac.cols] = np.asarray(jax.jit(jac.values)(y))
+    entries = np.asarray(jax.jit(jac.values)(y))
+    S[jac.rows, jac.cols] = entries
     assert np.max(np.abs(J - S)) <= 1e-13 * max(1.0, np.max(np.abs(J)))
+    # The same entries with the passes one by one (as for a large system; another program,
+    # so to round-off), and in another order (as IDA takes them; exactly).
+    monkeypatch.setattr(pattern, "BATCH_ENTRIES", 1)
+    one_by_one = np.asarray(jax.jit(jac.values)(y))
+    np.testing.assert_allclose(one_by_one, entries, rtol=1e-14,
+                               atol=1e-15 * max(1.0, np.max(np.abs(J))))
+    other = jac.reordered(np.random.default_rng(4).permutation(jac.nnz))
+    S[jac.rows, jac.cols] = one_by_one
+    moved = np.zeros_like(J)
+    moved[other.rows, other.cols] = np.asarray(jax.jit(other.values)(y))
+    np.testing.assert_array_equal(moved, S)
 
 
 @pytest.mark.parametrize("spec", ["four-bar", "rigid-chain:N=4", "sps-ring:N=16"])
