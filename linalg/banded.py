@@ -134,8 +134,9 @@ def band_norm(Sb: jax.Array) -> jax.Array:
     bit).
     """
     A = jnp.abs(Sb).T
+    left = sum(A[k] for k in range(len(A)))   # the diagonal and left of it
     right = sum(jnp.concatenate([A[k, k:], jnp.zeros(k)]) for k in range(1, len(A)))
-    return jnp.max(sum(A) + right)
+    return jnp.max(left + right)
 
 
 def small_cholesky(T: jax.Array) -> jax.Array:

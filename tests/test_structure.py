@@ -59,8 +59,8 @@ def test_structured_schur_solve_equals_dense(spec, kind):
     assert bool(F.ok)
     # Both are backward stable solves of a system with condition number below 1e3 here.
     assert np.max(np.abs(x - x_dense)) <= 1e-12 * np.max(np.abs(x_dense))
-    # The norm that Newton's stall test uses bounds ||S||_inf, and is it where the band
-    # holds all of S (no border rows).
+    # The norm that Newton's stall test uses bounds ||S||_inf, and equals it where the
+    # band holds all of S (no border rows).
     G = np.asarray(mech.G(q, t))
     S_inf = np.max(np.sum(np.abs(G @ (G.T / np.asarray(mech.mass_diagonal)[:, None])), axis=1))
     assert float(F.norm) >= S_inf * (1 - 1e-14)
