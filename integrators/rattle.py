@@ -34,8 +34,12 @@ class Rattle(FixedStep):
     The position projection is solved by Newton's method. For a separable Hamiltonian
     (constant mass, no applied forces) ``p_{1/2}`` and ``q_1`` are explicit in ``lambda``
     and the unknown is ``lambda`` alone (m x m Jacobian ``-h^2/2 G(q_1) M^{-1} G(q_0)^T``);
-    otherwise the unknown is ``(p_{1/2}, q_1, lambda)``. The velocity projection is linear
-    in ``mu`` (one m x m solve) because ``H_p`` is linear in ``p``.
+    otherwise the unknown is ``(p_{1/2}, q_1, lambda)``, and the position equation is taken
+    times ``M(q_0)^{-1} M(q_1)`` (a product with ``M(q_1)``, where ``H_p(q_1, p_{1/2})``
+    would factorise ``M(q_1)`` at every iterate), with ``M(q_0)`` factorised once per step
+    for every solve at ``q_0`` (:meth:`problems.mechanics.Mechanics.mass_solver`). The
+    velocity projection is linear in ``mu`` (one m x m solve) because ``H_p`` is linear in
+    ``p``.
 
     The structured paths (:mod:`linalg`; chosen by default wherever the mass allows,
     but for a separable system with one constraint: :meth:`dense_max`) use simplified
@@ -45,12 +49,8 @@ class Rattle(FixedStep):
     projection) and ``G`` is never formed. Where the frozen Jacobian does not converge,
     Newton with the exact Jacobian (matrix-free) takes over, preconditioned by ``S``
     factorised afresh at the ``q_1`` of its first iterate (without forces; by ``S_0`` with
-    them). With forces or a configuration-dependent mass the unknown is again ``(p_{1/2},
-    q_1, lambda)``, the position equation is taken times ``M(q_0)^{-1} M(q_1)`` (a
-    product with ``M(q_1)``, where ``H_p(q_1, p_{1/2})`` would factorise ``M(q_1)`` at
-    every iterate), and the same elimination reduces its correction to one solve with
-    ``S_0``; ``M(q_0)`` is factorised once per step for every solve at ``q_0``
-    (:meth:`problems.mechanics.Mechanics.mass_solver`). Newton starts from the
+    them). With forces or a configuration-dependent mass the same elimination reduces the
+    correction of ``(p_{1/2}, q_1, lambda)`` to one solve with ``S_0``. Newton starts from the
     previous step's ``mu``, the constraint force at ``q_0`` (``lambda`` is that at the
     previous ``q_0``): a closer guess, which the frozen Jacobian's small region of
     convergence needs where a step starts at a singular configuration. There ``S_0`` is
@@ -110,38 +110,24 @@ class Rattle(FixedStep):
         return F
 
     def position(self, mech: Mechanics, schur):
-        """The position projection ``(q0, p0, F0, S0, lam, t, h) -> (p_half, q1, sol,
-        extra_f)`` for the system's structure (``extra_f``: whether each residual evaluates
-        ``F``)."""
-        n, F = mech.n, self.forces(mech)
+        """The position projection ``(q0, p0, F0, S0, lam, t, h, solve0) -> (p_half, q1,
+        sol, extra_f)`` for the system's structure (``solve0``: ``M(q0)^{-1}``,
+        :meth:`problems.mechanics.Mechanics.mass_solver`; ``extra_f``: whether each residual
+        evaluates ``F``)."""
 
-        def position_separable(q0, p0, F0, G0, lam, t, h):
+        def position_separable(q0, p0, F0, G0, lam, t, h, solve0):
             def half(lam):
                 p_half = p0 + 0.5 * h * (F0 - G0.T @ lam)
-                return p_half, q0 + h * mech.H_p(q0, p_half)
+                return p_half, q0 + h * solve0(p_half)
 
             sol = newton(lambda lam: mech.g(half(lam)[1], t + h), lam,
                          self.newton_tol, self.newton_max_iter)
             return (*half(sol.z), sol, 0)
 
-        def position_general(q0, p0, F0, G0, lam, t, h):
-            def residual(z):
-                p_half, q1, lam = z[:n], z[n:2 * n], z[2 * n:]
-                F_half, v_half = F(t, q0, p_half)
-                return jnp.concatenate([
-                    p_half - p0 - 0.5 * h * (F_half - G0.T @ lam),
-                    q1 - q0 - 0.5 * h * (v_half + mech.H_p(q1, p_half)),
-                    mech.g(q1, t + h),
-                ])
-
-            z0 = jnp.concatenate([p0, q0 + h * mech.H_p(q0, p0), lam])
-            sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
-            return sol.z[:n], sol.z[n:2 * n], sol._replace(z=sol.z[2 * n:]), 1
-
-        def position_separable_structured(q0, p0, F0, S0, lam, t, h):
+        def position_separable_structured(q0, p0, F0, S0, lam, t, h, solve0):
             def half(lam):
                 p_half = p0 + 0.5 * h * (F0 - mech.GT(q0, t, lam))
-                return p_half, q0 + h * mech.H_p(q0, p_half)
+                return p_half, q0 + h * solve0(p_half)
 
             # The residual g(q1) is computed from q1 = q0 + h M^-1 p_half: besides the
             # terms in lam, q0's rounding reaches it as |G||q0| (coordinates of size N
@@ -161,9 +147,7 @@ class Rattle(FixedStep):
                          lambda lam: frozen(schur.factor(half(lam)[1], t + h)))
             return (*half(sol.z), sol, 0)
 
-        def position_structured(q0, p0, F0, S0, lam, t, h):
-            # M(q0)^-1 is used in every iteration: factorised once, here.
-            solve0 = mech.mass_solver(q0)
+        def position_general(q0, p0, F0, S0, lam, t, h, solve0):
             F0_at = self.forces(mech, solve0)
 
             def residual(z):
@@ -179,6 +163,13 @@ class Rattle(FixedStep):
                         solve0(mech.mass_times(q1, q1 - q0 - 0.5 * h * v_half)) - 0.5 * h * v_half,
                         mech.g(q1, t + h))
 
+            # The unknowns and the residual's blocks stay separate arrays (:func:`newton`).
+            z0 = (p0, q0 + h * solve0(p0), lam)
+            if schur.name == "dense":
+                sol = newton(residual, z0, self.newton_tol, self.newton_max_iter)
+                p_half, q1, lam = sol.z
+                return p_half, q1, sol._replace(z=lam), 1
+
             def linear(z, r):
                 # Frozen at q0 without the force Jacobian: dp = -r1 - h/2 G0^T dlam,
                 # dq = -r2 + h M^-1 dp and G0 dq = -r3 give
@@ -190,29 +181,37 @@ class Rattle(FixedStep):
                 dq = -r2 + h * solve0(dp)
                 return (dp, dq, dlam), max_norm(z)
 
-            # The unknowns and the residual's blocks stay separate arrays (:func:`newton`).
-            z0 = (p0, q0 + h * solve0(p0), lam)
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
             p_half, q1, lam = sol.z
             return p_half, q1, sol._replace(z=lam), 1
 
-        if schur.name == "dense":
-            return position_separable if mech.separable else position_general
-        return position_separable_structured if mech.separable else position_structured
+        if mech.separable:
+            return position_separable if schur.name == "dense" else position_separable_structured
+        return position_general
 
     def start(self, mech: Mechanics, schur, q0, v0, t0):
-        """``(q0, p0, v0, F0, S0, lam)``: ``S0`` is ``G(q0)`` on the dense path, the factor
-        of ``G M^{-1} G^T`` at ``q0`` otherwise; the multipliers start at zero."""
+        """``(q0, p0, v0, F0, S0, lam, K0)``: ``S0`` is ``G(q0)`` on the dense path, the
+        factor of ``G M^{-1} G^T`` at ``q0`` otherwise; the multipliers start at zero;
+        ``K0`` is the factor of a block-diagonal ``M(q0)`` (``None`` for any other mass)."""
         p0 = mech.momentum(q0, v0)
         first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
-        return q0, p0, v0, self.forces(mech)(t0, q0, p0)[0], first, jnp.zeros(mech.m)
+        return (q0, p0, v0, self.forces(mech)(t0, q0, p0)[0], first, jnp.zeros(mech.m),
+                self.mass_factor(mech, q0))
+
+    @staticmethod
+    def mass_factor(mech: Mechanics, q):
+        """The factor of ``M(q)`` that a step carries to the next (``None`` but for a
+        block-diagonal ``M(q)``, :meth:`problems.mechanics.Mechanics.mass_factor`)."""
+        return None if mech.mass_blocks is None else mech.mass_factor(q)
 
     def step(self, mech: Mechanics, schur, carry, t, h):
         """One step (:class:`integrators.fixed.FixedStep`)."""
-        q0, p0, _, F0, S0, lam = carry
-        p_half, q1, sol, extra_f = self.position(mech, schur)(q0, p0, F0, S0, lam, t, h)
+        q0, p0, _, F0, S0, lam, K0 = carry
+        p_half, q1, sol, extra_f = self.position(mech, schur)(q0, p0, F0, S0, lam, t, h,
+                                                              mech.mass_solver(q0, K0))
         t1 = t + h
-        solve1 = mech.mass_solver(q1)
+        K1 = self.mass_factor(mech, q1)
+        solve1 = mech.mass_solver(q1, K1)
         F1 = self.forces(mech, solve1)(t1, q1, p_half)[0]
         base = p_half + 0.5 * h * F1
         rhs = mech.vel_residual(q1, solve1(base), t1)
@@ -231,11 +230,13 @@ class Rattle(FixedStep):
                   "n_newton": it, "n_lin_solves": it + 1}
         # The next step's first guess of lam: mu on the structured path (docstring).
         guess = sol.z if schur.name == "dense" else mu
-        # v1 = H_p(q1, p1) with M(q1) as factorised above: computed afresh where the loop
-        # observes it, a configuration-dependent mass was factorised again (rigid-chain:N=
-        # 16384, one core, alternating: 195 and 173 ms per step of the loop with that, 140
-        # and 161 without it).
-        return ((q1, p1, solve1(p1), F1, S1, guess), newton_failure(sol.converged, ok),
+        # v1 = H_p(q1, p1) with M(q1) as factorised above, and that factor, are carried to
+        # the next step: computed afresh where the loop observes v1 and where the next step
+        # starts, a configuration-dependent mass was factorised twice more per step
+        # (rigid-chain:N=16384, one core: 195 and 173 ms per step of the loop with the
+        # first, 140 and 161 without it, alternating; with the second, 1.05 times as long
+        # at N = 1024 and 16384, the same steps, side by side in one process).
+        return ((q1, p1, solve1(p1), F1, S1, guess, K1), newton_failure(sol.converged, ok),
                 sol.residual, counts)
 
     def observe(self, mech: Mechanics, carry):

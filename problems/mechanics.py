@@ -230,8 +230,9 @@ class Mechanics:
     def mass_solver(self, q: Array, factors: list[Array] | None = None
                     ) -> Callable[[Array], Array]:
         """``b -> M(q)^{-1} b`` at one configuration, with what depends on ``q`` alone (the
-        Cholesky factors of :attr:`mass_blocks`) computed once, here, or given as
-        ``factors`` (:meth:`mass_factor`) by a caller that keeps them across steps.
+        Cholesky factors of :attr:`mass_blocks`, the LU factors of a dense ``M(q)``)
+        computed once, here, or the former given as ``factors`` (:meth:`mass_factor`) by a
+        caller that keeps them across steps.
 
         For the solves that a frozen Newton matrix repeats at one ``q`` in every iteration:
         XLA does not move the factorisation out of the Newton loop by itself, and RATTLE on
@@ -241,7 +242,10 @@ class Mechanics:
         if self.mass_blocks is not None:
             factors = self.mass_factor(q) if factors is None else factors
             return lambda b: self.mass_blocks.solve(factors, b)
-        return partial(self.solve_mass, q)
+        if self.constant_mass or self.mass_diagonal is not None or self.mass_band is not None:
+            return partial(self.solve_mass, q)
+        # A dense M(q): LU, as in solve_mass.
+        return partial(jax.scipy.linalg.lu_solve, jax.scipy.linalg.lu_factor(self.mass(q)))
 
     def potential(self, q: Array) -> Array:
         """Potential energy ``U(q)`` (zero when none is declared)."""
