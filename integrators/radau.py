@@ -333,7 +333,7 @@ class SchurStages(NamedTuple):
         q, t = frozen
         schur = self.mech.schur(self.linear_solver)
         # M(q_n)'s block factors are kept with S's: each Newton iteration solves with M twice
-        mass = None if self.mech.mass_blocks is None else self.mech.mass_factor(q)
+        mass = self.mech.mass_factor(q)
         factors = (schur.factor(q, t), mass)
         if self.ggl:
             factors += (self.mech.gram(schur.name).factor(q, t),)

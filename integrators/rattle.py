@@ -192,17 +192,12 @@ class Rattle(FixedStep):
     def start(self, mech: Mechanics, schur, q0, v0, t0):
         """``(q0, p0, v0, F0, S0, lam, K0)``: ``S0`` is ``G(q0)`` on the dense path, the
         factor of ``G M^{-1} G^T`` at ``q0`` otherwise; the multipliers start at zero;
-        ``K0`` is the factor of a block-diagonal ``M(q0)`` (``None`` for any other mass)."""
+        ``K0`` is the factor of a block-diagonal ``M(q0)``
+        (:meth:`problems.mechanics.Mechanics.mass_factor`; ``None`` for any other mass)."""
         p0 = mech.momentum(q0, v0)
         first = mech.G(q0, t0) if schur.name == "dense" else schur.factor(q0, t0)
         return (q0, p0, v0, self.forces(mech)(t0, q0, p0)[0], first, jnp.zeros(mech.m),
-                self.mass_factor(mech, q0))
-
-    @staticmethod
-    def mass_factor(mech: Mechanics, q):
-        """The factor of ``M(q)`` that a step carries to the next (``None`` but for a
-        block-diagonal ``M(q)``, :meth:`problems.mechanics.Mechanics.mass_factor`)."""
-        return None if mech.mass_blocks is None else mech.mass_factor(q)
+                mech.mass_factor(q0))
 
     def step(self, mech: Mechanics, schur, carry, t, h):
         """One step (:class:`integrators.fixed.FixedStep`)."""
@@ -210,7 +205,7 @@ class Rattle(FixedStep):
         p_half, q1, sol, extra_f = self.position(mech, schur)(q0, p0, F0, S0, lam, t, h,
                                                               mech.mass_solver(q0, K0))
         t1 = t + h
-        K1 = self.mass_factor(mech, q1)
+        K1 = mech.mass_factor(q1)
         solve1 = mech.mass_solver(q1, K1)
         F1 = self.forces(mech, solve1)(t1, q1, p_half)[0]
         base = p_half + 0.5 * h * F1

@@ -184,10 +184,12 @@ class Mechanics:
         blocks = Blocks(np.asarray(pattern.rows), np.asarray(pattern.cols), self.n)
         return blocks if blocks.block_diagonal else None
 
-    def mass_factor(self, q: Array) -> list[Array]:
+    def mass_factor(self, q: Array) -> list[Array] | None:
         """The Cholesky factors of the blocks of ``M(q)`` (:attr:`mass_blocks`), from one
-        product ``M(q) s`` per seed."""
+        product ``M(q) s`` per seed; ``None`` for a mass without blocks."""
         blocks = self.mass_blocks
+        if blocks is None:
+            return None
         products = jax.vmap(lambda s: self.mass_times(q, s))(blocks.seeds())
         return blocks.factor(blocks.values(products))
 
