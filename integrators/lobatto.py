@@ -128,11 +128,11 @@ class LobattoIIIAIIIB(FixedStep):
         B_inv = np.linalg.inv(np.vstack([(tab.A @ tab.A_hat)[1:], tab.b]))
         return A, Ah, b, c, B_inv
 
-    def simplified(self, mech: Mechanics, schur, q0, p0, t, h, S0):
+    def simplified(self, mech: Mechanics, schur, q0, p0, t, h, S0, K0):
         """Simplified Newton's correction for the stage system (see the class notes)."""
         s = self.stages
         A, Ah, b, c, B_inv = self.tableau()
-        solve0 = mech.mass_solver(q0)   # factorised once per step, not per iteration
+        solve0 = mech.mass_solver(q0, K0)   # factorised once per step, not per iteration
         Minv = jax.vmap(solve0)
         weights = jnp.concatenate([jnp.full(s - 1, 1.0 / (h * h)), jnp.array([1.0 / h])])
 
@@ -160,18 +160,20 @@ class LobattoIIIAIIIB(FixedStep):
         return linear
 
     def start(self, mech: Mechanics, schur, q0, v0, t0):
-        """``(q0, p0, lam, S0)``: zero multipliers, and the factor of ``G M^{-1} G^T`` at
-        ``q0`` on the structured path (a placeholder on the dense one)."""
-        S0 = jnp.zeros(()) if schur.name == "dense" else schur.factor(q0, t0)
-        return q0, mech.momentum(q0, v0), jnp.zeros(mech.m), S0
+        """``(q0, p0, v0, lam, S0, K0)``: zero multipliers, and on the structured path the
+        factor of ``G M^{-1} G^T`` at ``q0`` (a placeholder on the dense one) and that of a
+        block-diagonal ``M(q0)`` (:meth:`problems.mechanics.Mechanics.mass_factor`)."""
+        if schur.name == "dense":
+            return q0, mech.momentum(q0, v0), v0, jnp.zeros(mech.m), jnp.zeros(()), None
+        return (q0, mech.momentum(q0, v0), v0, jnp.zeros(mech.m), schur.factor(q0, t0),
+                mech.mass_factor(q0))
 
     def step(self, mech: Mechanics, schur, carry, t, h):
         """One step (:class:`integrators.fixed.FixedStep`)."""
         s = self.stages
         A, Ah, b, c, _ = self.tableau()
         dense = schur.name == "dense"
-        q0, p0, lam, S0 = carry
-        v0 = mech.H_p(q0, p0)
+        q0, p0, v0, lam, S0, K0 = carry
 
         def residual(z):
             Q, V, Lam, v1 = z
@@ -195,18 +197,25 @@ class LobattoIIIAIIIB(FixedStep):
             S1, ok, jac = S0, True, sol.iterations
         else:
             sol = newton(residual, z0, self.newton_tol, self.newton_max_iter,
-                         self.simplified(mech, schur, q0, p0, t, h, S0))
+                         self.simplified(mech, schur, q0, p0, t, h, S0, K0))
         Q, V, Lam, v1 = sol.z
         q1 = q0 + h * combine(b, V)
         p1 = mech.momentum(q1, v1)
+        K1 = None
         if not dense:
-            S1 = schur.factor(q1, t + h)   # the next step's S_0
+            # The next step's S_0 and M(q_0) factors.
+            S1, K1 = schur.factor(q1, t + h), mech.mass_factor(q1)
             ok, jac = S0.ok, 1
         it = sol.iterations
         counts = {"n_f_evals": s * (it + 1), "n_jac_evals": jac, "n_newton": it,
                   "n_lin_solves": it}
-        return (q1, p1, Lam[-1], S1), newton_failure(sol.converged, ok), sol.residual, counts
+        # v1 and M(q1)'s factors go to the next step: the loop observes v1 and the next
+        # step starts from it, so that a configuration-dependent mass is factorised once
+        # per step (0.95 and 0.98 times the step with the observation on rigid-chain:N=1024
+        # and 16384, side by side in one process).
+        return ((q1, p1, v1, Lam[-1], S1, K1), newton_failure(sol.converged, ok),
+                sol.residual, counts)
 
     def observe(self, mech: Mechanics, carry):
-        """``(q, H_p(q, p))``."""
-        return carry[0], mech.H_p(carry[0], carry[1])
+        """``(q, v)``, both carried."""
+        return carry[0], carry[2]
