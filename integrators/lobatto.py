@@ -154,7 +154,7 @@ class LobattoIIIAIIIB(FixedStep):
             dV = Minv(-RP - h * combine(Ah, force))
             dQ = -RQ + h * combine(A, dV)
             dv1 = solve0(-Rp - h * combine(b, force))
-            # The residual's terms: the momenta's, about p0's, besides the unknowns'.
+            # The residual's terms: the unknowns, and the momenta (about p0).
             return (dQ, dV, dLam, dv1), jnp.maximum(max_norm(z), max_norm(p0))
 
         return linear

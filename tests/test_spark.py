@@ -1,5 +1,7 @@
 """Lobatto IIIA-IIIB (SPARK) and RATTLE: order, agreement, constraints, energy, failure."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -67,6 +69,31 @@ def test_constraints_hold_to_round_off_at_every_step(key, problem, h, t_end):
     # decade for the round-off of evaluating g with O(1) coordinates.
     assert np.max(traj.windows["pos"]) <= 1e-13
     assert np.max(traj.windows["vel"]) <= 1e-13
+
+
+@pytest.mark.parametrize("key", ["rattle", "lobatto3ab3"])
+@pytest.mark.parametrize("problem", ["rigid-chain:N=4", "rigid-body", "andrews"])
+def test_the_carried_velocity_and_mass_factors_are_those_of_the_carried_state(key, problem):
+    # Both methods carry v = H_p(q, p) and the factors of a block-diagonal M(q) from one
+    # step to the next rather than compute them again: they must be those of the (q, p)
+    # carried with them (a stale v or factor would pass unnoticed by the step itself).
+    case = problems.make(problem)
+    mech, h = case.mech, 1e-3
+    method = integrators.make(key, h=h)
+    schur = method.linear_algebra(mech)
+    state = method.start(mech, schur, jnp.asarray(case.q0), jnp.asarray(case.v0),
+                         jnp.float64(case.t0))
+    step = jax.jit(lambda state, t: method.step(mech, schur, state, t, h))
+    for k in range(5):
+        state, code, _, _ = step(state, case.t0 + k * h)
+        assert int(code) == 0
+    q, v = method.observe(mech, state)
+    v_of_p = mech.H_p(q, state[1])
+    assert np.max(np.abs(v - v_of_p)) <= 1e-13 * max(1.0, float(np.max(np.abs(v_of_p))))
+    carried, fresh = state[-1], mech.mass_factor(q)
+    assert (carried is None) == (fresh is None)
+    for a, b in zip(jax.tree_util.tree_leaves(carried), jax.tree_util.tree_leaves(fresh)):
+        assert np.max(np.abs(a - b)) <= 1e-14 * max(1.0, float(np.max(np.abs(b))))
 
 
 @pytest.mark.slow
