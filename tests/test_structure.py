@@ -519,6 +519,30 @@ def test_a_diverged_iterate_fails_the_superlu_solve_as_data():
     assert np.all(np.isnan(np.asarray(S.solve(bad, rhs))))
 
 
+@pytest.mark.parametrize("spec", ["sps-ring:N=8", "sps-lattice:N=4,K=3,perturb=0.1",
+                                  "rigid-chain:N=3"])
+def test_superlu_assembles_the_scaled_schur_complement_and_its_norm(spec):
+    # The fixed pattern of S (pairs of G's entries in one column, summed into S's columns)
+    # against G M^-1 G^T formed densely: a ring's hub rows, a lattice's non-unit masses and
+    # a rigid chain's whitened block mass (unit mass, G L^-T).
+    case = problems.make(spec)
+    mech = case.mech
+    schur = mech.schur("superlu")
+    q = jnp.asarray(case.q0) * 1.01 + 1e-3      # off the symmetric start: no chance zeros
+    values = np.asarray(schur.G_values(q, 0.0))
+    G = np.zeros((mech.m, schur.pattern.n))
+    np.add.at(G, (np.asarray(schur.pattern.rows), np.asarray(schur.pattern.cols)), values)
+    dinv = np.zeros(schur.pattern.n)
+    dinv[np.asarray(schur.pattern.cols)] = 1.0 / np.asarray(schur.mass_diagonal)[
+        np.asarray(schur.pattern.cols)]
+    S = (G * dinv) @ G.T
+    Ss, D, norm = schur.assemble(values)
+    assert np.allclose(D, 1.0 / np.sqrt(np.diag(S)), rtol=1e-14, atol=0.0)
+    assert np.max(np.abs(Ss.toarray() - D[:, None] * S * D[None, :])) <= 1e-14
+    assert abs(norm - np.max(np.abs(S).sum(axis=1))) <= 1e-14 * norm
+    assert Ss.nnz == np.count_nonzero(Ss.toarray())   # no stored zeros for SuperLU to fill
+
+
 @pytest.mark.parametrize("spec, kind", [("chain:N=40", "banded"), ("chain:N=40", "superlu"),
                                         ("four-bar:N=40", "kkt"), ("rigid-chain:N=4", "banded")])
 def test_a_structured_solver_first_built_inside_a_trace_serves_later_traces(spec, kind):
