@@ -14,8 +14,10 @@ constraints; SuperLU's factorisation itself 2.1 ms), 0.11 against 1.57 on sps-ri
 and 0.09 against 1.42 on chain:N=64 (alternating in one process, load 1.1; the same ``S``
 to round-off). With the cheaper test of the kept factor (:meth:`SuperLU._factorise`),
 RATTLE's 4000 steps of the perturbed lattice (``tests/test_problem_sps_lattice.py``) took
-33.3 against 37.4 s (one run each, load 1 to 1.4); the rest of a step there is the
-callbacks' own cost, about 0.45 ms per call beyond the Python they run.
+33.3 against 37.4 s (one run each, load 1 to 1.4). Much of the rest of a step there is the
+callbacks' own cost, about 0.45 ms per call beyond the Python they run, less with one
+operand per call (:meth:`SuperLU.factor`): its first 800 steps then took 6.04 and 5.78
+against 6.56 and 7.57 s (alternating processes, load 1.3 to 1.7).
 """
 
 from __future__ import annotations
@@ -124,17 +126,22 @@ class SuperLU(Schur):
 
         def host(values):
             _, _, norm, ok = self._factorise(np.asarray(values))
-            return np.float64(norm), np.bool_(ok)
+            return np.array([norm, ok], dtype=np.float64)
 
-        norm, ok = jax.pure_callback(
-            host, (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((), jnp.bool_)),
-            values, vmap_method="sequential")
-        return Factor(values, norm, ok)
+        # One operand and one result per callback: each costs on its own (a solve's
+        # callback with G's values and the right-hand side packed into one array took
+        # 138 to 169 us against 212 to 259 with the two apart; one core, load about 1).
+        norm, ok = jax.pure_callback(host, jax.ShapeDtypeStruct((2,), jnp.float64), values,
+                                     vmap_method="sequential")
+        return Factor(values, norm, ok > 0.0)
 
     def solve(self, F: Factor, rhs):
-        def host(values, rhs):
-            solver, D, _, ok = self._factorise(np.asarray(values))
-            r = np.asarray(rhs)
+        nnz = self.nnz
+
+        def host(packed):
+            packed = np.asarray(packed)
+            solver, D, _, ok = self._factorise(packed[:nnz])
+            r = packed[nnz:].reshape(rhs.shape)
             # A singular S, or a diverged Newton iterate: NaN, which fails the step with
             # the loop's message instead of raising out of the compiled loop.
             if not ok or not np.all(np.isfinite(r)):
@@ -143,6 +150,5 @@ class SuperLU(Schur):
             return Dr * solver(Dr * r)
 
         return jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
-                                 F.data, rhs, vmap_method="sequential")
-
-
+                                 jnp.concatenate([F.data, rhs.ravel()]),
+                                 vmap_method="sequential")
