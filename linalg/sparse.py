@@ -55,7 +55,9 @@ class SuperLU(Schur):
         self.nnz = pattern.nnz
         m = pattern.m
         rows, cols = np.asarray(pattern.rows, np.int64), np.asarray(pattern.cols, np.int64)
-        # Every ordered pair (a, b) of G's entries in one column, entries sorted by column.
+        # Every ordered pair (a, b) of G's entries in one column, entries sorted by column:
+        # as many as a sparse product of G and G^T multiplies (the squares of the column
+        # counts, summed).
         by_col = np.argsort(cols, kind="stable")
         per_col = np.bincount(cols, minlength=pattern.n)
         run = (np.cumsum(per_col) - per_col)[cols[by_col]]   # where each entry's column starts
