@@ -67,6 +67,21 @@ def gather(a: jax.Array, index: jax.Array) -> jax.Array:
     return jnp.take(a, index.ravel(), axis=0, mode="clip").reshape(index.shape + a.shape[1:])
 
 
+def column_pairs(entries: np.ndarray, cols: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair ``(first, second)`` of ``entries`` (indices into ``cols``) that
+    share a column, as two index arrays: the pairs of a column ``first``-major, the columns
+    ascending, the entries of a column in the order given. Each pair is a term
+    ``G_first G_second / M_jj`` of ``S = G M^{-1} G^T``, as many as a sparse product
+    multiplies (the squares of the column counts, summed)."""
+    order = entries[np.argsort(cols[entries], kind="stable")]
+    per_col = np.bincount(cols[order], minlength=n)
+    repeat = per_col[cols[order]]
+    first = np.repeat(order, repeat)
+    within = np.arange(len(first)) - np.repeat(np.cumsum(repeat) - repeat, repeat)
+    second = order[np.repeat((np.cumsum(per_col) - per_col)[cols[order]], repeat) + within]
+    return first, second
+
+
 class SparseJacobian:
     """The Jacobian of ``f: R^n -> R^m`` by compressed autodiff, its pattern traced from ``f``.
 
@@ -253,14 +268,7 @@ class Pattern:
         # G_e1 G_e2 / M_jj to S[pos(e1), pos(e2)] (pos(e1) >= pos(e2)). The pairs of a
         # column are listed e1-major, the columns in ascending order and the entries of a
         # column by index, so that each slot sums its terms in a fixed order.
-        in_core = np.flatnonzero(position[self.rows] >= 0)
-        order = in_core[np.argsort(self.cols[in_core], kind="stable")]
-        per_col = np.bincount(self.cols[order], minlength=n)
-        col_start = np.cumsum(per_col) - per_col
-        repeat = per_col[self.cols[order]]
-        first = np.repeat(order, repeat)
-        within = np.arange(len(first)) - np.repeat(np.cumsum(repeat) - repeat, repeat)
-        second = order[np.repeat(col_start[self.cols[order]], repeat) + within]
+        first, second = column_pairs(np.flatnonzero(position[self.rows] >= 0), self.cols, n)
         p1, p2 = position[self.rows[first]], position[self.rows[second]]
         keep = p1 >= p2
         first, second, slot = first[keep], second[keep], (p1 * (w + 1) + (p1 - p2))[keep]

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from linalg.dense import RANK_RTOL, Factor, Schur
-from linalg.pattern import Pattern
+from linalg.pattern import Pattern, column_pairs
 
 
 #: Largest number of constraints for which SuperLU, finding ``S`` singular, falls back to a
@@ -54,17 +54,8 @@ class SuperLU(Schur):
         self.pattern, self.G_values, self.mass_diagonal = pattern, G_values, mass_diagonal
         self.nnz = pattern.nnz
         m = pattern.m
-        rows, cols = np.asarray(pattern.rows, np.int64), np.asarray(pattern.cols, np.int64)
-        # Every ordered pair (a, b) of G's entries in one column, entries sorted by column:
-        # as many as a sparse product of G and G^T multiplies (the squares of the column
-        # counts, summed).
-        by_col = np.argsort(cols, kind="stable")
-        per_col = np.bincount(cols, minlength=pattern.n)
-        run = (np.cumsum(per_col) - per_col)[cols[by_col]]   # where each entry's column starts
-        count = per_col[cols[by_col]]
-        first = np.repeat(by_col, count)
-        within = np.arange(len(first)) - np.repeat(np.cumsum(count) - count, count)
-        second = by_col[np.repeat(run, count) + within]
+        rows, cols = pattern.rows, pattern.cols
+        first, second = column_pairs(np.arange(pattern.nnz), cols, pattern.n)   # S's terms
         # S's entries in compressed-column order (column-major keys, rows sorted within).
         keys, self._target = np.unique(rows[second] * m + rows[first], return_inverse=True)
         self._first, self._second = first, second
