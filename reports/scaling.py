@@ -129,7 +129,11 @@ def section(doc: Document, data: dict, draw) -> None:
     doc.add(Table(["verdict", "bar", "measured"],
                   [[b["verdict"], b["bar"], b["value"]] for b in data["bars"]],
                   "The bars of the scaling issue. NOT MEASURED: the run's options left the "
-                  "point out; a point that did not finish fails its bar."))
+                  "point out; a point that did not finish fails its bar."
+                  + (f" A ratio of two points measured side by side (one process solving "
+                     f"both in turn, {s['side_by_side']} rounds) decides its bar; the ratio "
+                     f"of the separate processes is given beside it."
+                     if data.get("side_by_side") else "")))
 
 
 def write(data: dict, out: Path) -> list[Path]:

@@ -171,6 +171,51 @@ def test_the_per_body_bar_is_read_against_plain_c():
     assert "plain C" not in bar["value"]
 
 
+def test_a_ratio_measured_side_by_side_decides_its_bar():
+    """Where the ratio was measured side by side in one process the bar reads it, with the
+    separate processes' ratio beside it; where that measurement did not finish, the bar
+    falls back to the separate processes and says why."""
+    points = [_ok("chain", "rattle", 1024, 1e-4), _ok("chain", "rattle", 16384, 3e-3)]
+    assert scaling.side_pairs({**SETTINGS, "families": ["rattle", "lobatto3ab3"]}, points) == [
+        (("chain", 16384, "rattle"), ("chain", 1024, "rattle"))]
+    side = {"num": ["chain", 16384, "rattle"], "den": ["chain", 1024, "rattle"],
+            "status": "ok", "message": "", "rounds": 3, "ratio": 20.0, "ratio_min": 19.0,
+            "ratio_max": 22.0, "ratio_cpu": 19.5}
+    growth = _verdict(bars(points, SETTINGS, [side]), "rattle on chain: time")
+    assert growth["verdict"] == "PASS" and growth["value"].startswith(
+        "20x side by side in one process (median of 3 rounds, 19 to 22; by CPU time 19.5x)")
+    assert "in separate processes 30x" in growth["value"]
+    side.update(ratio=25.0)
+    assert _verdict(bars(points, SETTINGS, [side]), "rattle on chain: time")["verdict"] == "FAIL"
+    failed = {**side, "status": "timeout", "message": "killed at the limit of 600 s"}
+    growth = _verdict(bars(points, SETTINGS, [failed]), "rattle on chain: time")
+    assert growth["verdict"] == "FAIL" and growth["value"].startswith("30x")
+    assert "side by side: timeout (killed at the limit of 600 s)" in growth["value"]
+    # A ratio of other points is not this bar's.
+    other = {**side, "ratio": 1.0, "den": ["chain", 4096, "rattle"]}
+    assert _verdict(bars(points, SETTINGS, [other]), "rattle on chain: time")[
+        "value"].startswith("30x")
+
+
+@pytest.mark.slow
+def test_a_ratio_side_by_side_alternates_both_points_in_one_process():
+    """Two rounds of chain:N=8 over N=4 in one child: a finite ratio within its rounds'
+    range; a side that fails its steps makes the pair ``failed`` with that side's message,
+    as data."""
+    from benchmarks.pool import thread_environment
+
+    settings = {"h": {"chain": 0.05}, "steps": 5, "rtol": 1e-8, "newton_tol": 1e-16,
+                "side_by_side": 2, "limit": 120.0, "memory_limit": 8 << 30}
+    env = {**os.environ, **thread_environment()}
+    side = scaling.run_pair(("chain", 8, "rattle"), ("chain", 4, "rattle"), settings, env)
+    assert side["status"] == "ok" and side["rounds"] == 2, side
+    assert 0 < side["ratio_min"] <= side["ratio"] <= side["ratio_max"] < 100
+    failing = scaling.run_pair(("chain", 8, "rattle:newton_max_iter=1"), ("chain", 4, "rattle"),
+                               settings, env)
+    assert failing["status"] == "failed"
+    assert failing["message"].startswith("rattle:newton_max_iter=1 on chain:N=8: failed:")
+
+
 def test_a_growth_bar_says_what_more_newton_iterations_made_of_it():
     """The verdict is the time's growth; where the iterations per step changed with N the
     value gives both counts and the growth per iteration, and not otherwise."""
@@ -248,7 +293,7 @@ def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypa
                                   ["--h", "chain=-1"], ["--h", "pendulum=1e-3"],
                                   ["--limit", "0"], ["--steps", "0"], ["--rtol", "2"],
                                   ["--steps", "many"], ["--problems", "pendulum"],
-                                  ["--processes", "0"]])
+                                  ["--processes", "0"], ["--side-by-side", "-1"]])
 def test_bad_options_exit_2_with_one_line(argv, capsys):
     try:
         code = scaling.main(argv)

@@ -104,6 +104,20 @@ to C is that of the two median processes. A point that is not ``ok`` in some rou
 reported as that round's (the first such); a family that stopped in one round is not run
 at that N or larger in later rounds.
 
+The ratios of two points that the bars read (each family's growth from N = 1024 to 16384,
+and rattle's time per body over its time per link) are measured side by side as well:
+after the rounds, one fresh process per ratio prepares both points and solves them in
+turn, ``--side-by-side K`` rounds (default :data:`SIDE_ROUNDS`; each side as often as
+takes :data:`MIN_TIMED` s, the order swapped from one round to the next), and gives the
+median over the rounds of each round's ratio of median times per step, with the least and
+greatest. Both sides then run under the same load, which separate processes minutes apart
+do not: rattle's growth on rigid-chain came to 28.9x as the ratio of two median processes
+in a run whose load went from 0.8 to 1.1, and to 20.2x side by side in one process at load
+0.9. A bar is judged on the side-by-side ratio where it finished, with the ratio of the
+separate processes beside it; the per-point table, the fits and the memory bars stay those
+of the separate processes. A side-by-side process runs under twice a point's time limit,
+without the address-space cap (:func:`run_pair`).
+
 A point runs under a time limit (``--limit``, default :data:`LIMIT` s for the whole process)
 and an address-space cap (``--memory-limit``). A point that fails, runs out of time or out
 of memory gets that status, and its family is not run at larger N on that problem (status
@@ -163,6 +177,8 @@ LIMIT = 300.0
 #: memory; an idle process with JAX imported maps about 1.5 GiB.
 MEMORY_LIMIT_GIB = 8.0
 REPEATS = 3
+#: Rounds of a ratio measured side by side (module notes).
+SIDE_ROUNDS = 3
 #: Short solves are repeated until they total this many seconds (at most MAX_REPEATS
 #: times), so that one preemption does not decide a median of a few milliseconds.
 MIN_TIMED, MAX_REPEATS = 0.2, 50
@@ -237,48 +253,63 @@ def more(times: list[float], repeats: int) -> bool:
             and (len(times) < repeats or total < MIN_TIMED))
 
 
-def point_main(argv: list[str]) -> int:
-    """Child side of one point: ``argv[0]`` is its JSON settings; prints one JSON line.
+def timed(solve) -> tuple:
+    """One solve: the trajectory, its wall-clock and CPU seconds, and the seconds of a
+    program compiled on first need (:func:`integrators.loop.march`), which are set-up and
+    taken out of both."""
+    late = getattr(solve, "late_setup_s", 0.0)
+    start, cpu = time.perf_counter(), time.process_time()
+    traj = solve()
+    late = getattr(solve, "late_setup_s", 0.0) - late
+    return (traj, time.perf_counter() - start - late, time.process_time() - cpu - late,
+            late)
 
-    The address-space cap is set before JAX is imported, so that every allocation,
-    JAX's included, is under it.
-    """
+
+def prepare(spec: dict) -> tuple:
+    """The prepared solve of the point ``spec`` describes, its building and its set-up
+    seconds (in a process set up by :func:`like_a_worker`, the plugins loaded)."""
+    import integrators
+    import problems
+    from integrators.base import Grid
+
+    start = time.perf_counter()
+    case = problems.make(f"{spec['problem']}:N={spec['n']}").with_t_end(
+        spec["steps"] * spec["h"])
+    integ = integrators.make(spec["family"], h=spec["h"], rtol=spec["rtol"],
+                             newton_tol=spec["newton_tol"])
+    build = time.perf_counter() - start
+    # Two samples (start and end): the default 2000 sampled states would be the
+    # harness's memory (0.5 GB at N = 16384), not the method's.
+    grid = Grid(case.t0, case.t_end, n_samples=2)
+    start = time.perf_counter()
+    solve = integ.prepare(case, grid)
+    return solve, build, time.perf_counter() - start
+
+
+def capped(spec: dict) -> float:
+    """Set the address-space cap of ``spec`` (before JAX is imported, so that every
+    allocation, JAX's included, is under it); the monotonic deadline of its time limit."""
+    if spec["memory_limit"]:
+        resource.setrlimit(resource.RLIMIT_AS, (spec["memory_limit"],) * 2)
+    return time.monotonic() + spec["limit"]
+
+
+def point_main(argv: list[str]) -> int:
+    """Child side of one point: ``argv[0]`` is its JSON settings; prints one JSON line."""
     spec = json.loads(argv[0])
-    cap = spec["memory_limit"]
-    if cap:
-        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
-    deadline = time.monotonic() + spec["limit"]
+    deadline = capped(spec)
     out: dict = {}
     try:
         like_a_worker()
-        import integrators
-        import problems
         from benchmarks.executors import load_plugins
-        from integrators.base import Grid
 
         load_plugins()
-
-        start = time.perf_counter()
-        case = problems.make(f"{spec['problem']}:N={spec['n']}").with_t_end(
-            spec["steps"] * spec["h"])
-        integ = integrators.make(spec["family"], h=spec["h"], rtol=spec["rtol"],
-                                 newton_tol=spec["newton_tol"])
-        out["build_s"] = time.perf_counter() - start
-        # Two samples (start and end): the default 2000 sampled states would be the
-        # harness's memory (0.5 GB at N = 16384), not the method's.
-        grid = Grid(case.t0, case.t_end, n_samples=2)
-        start = time.perf_counter()
-        solve = integ.prepare(case, grid)
-        out["setup_s"] = time.perf_counter() - start
+        solve, out["build_s"], out["setup_s"] = prepare(spec)
         walls, cpus = [], []
         while True:
-            late = getattr(solve, "late_setup_s", 0.0)
-            start, cpu = time.perf_counter(), time.process_time()
-            traj = solve()
-            # A program compiled on first need (integrators.loop.march) is set-up.
-            late = getattr(solve, "late_setup_s", 0.0) - late
-            walls.append(time.perf_counter() - start - late)
-            cpus.append(time.process_time() - cpu - late)
+            traj, wall, cpu, late = timed(solve)
+            walls.append(wall)
+            cpus.append(cpu)
             out["setup_s"] += late
             # A margin of twice the last solve: a timing repeat must not turn a finished
             # point into a timeout.
@@ -307,7 +338,62 @@ def point_main(argv: list[str]) -> int:
     return 0
 
 
+class Stopped(Exception):
+    """A side of a ratio measured side by side that did not finish its steps."""
+
+
+def pair_main(argv: list[str]) -> int:
+    """Child side of a ratio measured side by side (module notes): ``argv[0]`` holds the
+    settings of its two points, numerator first, and of the process; prints one JSON line.
+
+    Each round solves both, the one first that went second in the round before, each as
+    often as takes :data:`MIN_TIMED` s; a round's ratio is that of the two sides' median
+    times per step in it. Rounds stop at ``rounds`` or once another would come within
+    twice the last round's time of the limit.
+    """
+    spec = json.loads(argv[0])
+    deadline = capped(spec)
+    out: dict = {"status": "ok", "message": ""}
+    try:
+        like_a_worker()
+        from benchmarks.executors import load_plugins
+
+        load_plugins()
+        solves = [prepare(side)[0] for side in spec["sides"]]
+        ratios: dict[str, list[float]] = {"wall": [], "cpu": []}
+        for r in range(spec["rounds"]):
+            start = time.monotonic()
+            rates = [{}, {}]
+            for i in ((1, 0) if r % 2 == 0 else (0, 1)):
+                walls, cpus = [], []
+                while not walls or (sum(walls) < MIN_TIMED and len(walls) < MAX_REPEATS):
+                    traj, wall, cpu, _ = timed(solves[i])
+                    if traj.status != "ok":
+                        side = spec["sides"][i]
+                        raise Stopped(f"{side['family']} on {side['problem']}:N={side['n']}: "
+                                      f"{traj.status}: {traj.message}")
+                    walls.append(wall / traj.counts["n_steps"])
+                    cpus.append(cpu / traj.counts["n_steps"])
+                rates[i] = {"wall": statistics.median(walls), "cpu": statistics.median(cpus)}
+            for clock in ratios:
+                ratios[clock].append(rates[0][clock] / rates[1][clock])
+            if time.monotonic() + 2.0 * (time.monotonic() - start) > deadline:
+                break
+        out.update(rounds=len(ratios["wall"]), ratio=statistics.median(ratios["wall"]),
+                   ratio_min=min(ratios["wall"]), ratio_max=max(ratios["wall"]),
+                   ratio_cpu=statistics.median(ratios["cpu"]))
+    except Stopped as exc:
+        out.update(status="failed", message=" ".join(str(exc).split())[:500])
+    except Exception as exc:  # recorded as the pair's status, never fatal to the benchmark
+        text = f"{type(exc).__name__}: {exc}"
+        out.update(status="out of memory" if memory_exhausted(text) else "error",
+                   message=" ".join(text.split())[:500])
+    print(json.dumps(out))
+    return 0
+
+
 CHILD = "import sys; from benchmarks.perf.scaling import point_main; sys.exit(point_main(sys.argv[1:]))"
+PAIR_CHILD = CHILD.replace("point_main", "pair_main")
 
 
 def newton_tol(problem: str, n: int, settings: dict) -> float | None:
@@ -316,35 +402,65 @@ def newton_tol(problem: str, n: int, settings: dict) -> float | None:
     return settings["newton_tol"] / n ** 2 if problem == "chain" else None
 
 
+def point_spec(problem: str, n: int, family: str, settings: dict) -> dict:
+    """What a child needs to build and prepare one point."""
+    return {"problem": problem, "n": n, "family": family, "h": settings["h"][problem],
+            "newton_tol": newton_tol(problem, n, settings), "steps": settings["steps"],
+            "rtol": settings["rtol"]}
+
+
+def run_child(code: str, spec: dict, env: dict) -> dict:
+    """Run a child (``code`` with ``spec`` as its argument) under ``spec``'s time limit:
+    its JSON result, or a ``status`` and ``message`` saying how it ended otherwise, with
+    ``process_s`` and the ``peak_rss`` read while it ran (the child's own, where it gives
+    one, is more exact)."""
+    start = time.perf_counter()
+    ending, stdout, stderr, rss = run_process([sys.executable, "-c", code, json.dumps(spec)],
+                                              spec["limit"], env)
+    out = {"status": "error", "process_s": time.perf_counter() - start, "peak_rss": rss}
+    lines = stdout.strip().splitlines()
+    if ending == "timeout":
+        out.update(status="timeout", message=f"killed at the limit of {spec['limit']:g} s")
+    elif ending == "killed by SIGKILL":
+        out.update(status="out of memory", message="killed by SIGKILL from outside (the "
+                                                   "out-of-memory killer, most likely)")
+    elif ending or not lines:
+        tail = " ".join(stderr.split())[-400:]
+        out.update(status="out of memory" if memory_exhausted(stderr) else "error",
+                   message=f"the process ended with {ending or 'no result'}: {tail}")
+    else:
+        out.update(json.loads(lines[-1]))
+    return out
+
+
 def run_family(problem: str, n: int, family: str, settings: dict, env: dict,
                state: Path | None = None) -> Point:
     """One point of a family in a fresh process."""
-    spec = {"problem": problem, "n": n, "family": family, "h": settings["h"][problem],
-            "newton_tol": newton_tol(problem, n, settings),
-            "steps": settings["steps"], "rtol": settings["rtol"], "repeats": settings["repeats"],
+    spec = {**point_spec(problem, n, family, settings), "repeats": settings["repeats"],
             "limit": settings["limit"], "memory_limit": settings["memory_limit"],
             "state": str(state) if state else None}
-    start = time.perf_counter()
-    ending, stdout, stderr, rss = run_process(
-        [sys.executable, "-c", CHILD, json.dumps(spec)], settings["limit"], env)
-    point = Point(problem, n, family, "error", process_s=time.perf_counter() - start,
-                  peak_rss=rss)
-    lines = stdout.strip().splitlines()
-    if ending == "timeout":
-        point.status = "timeout"
-        point.message = f"killed at the limit of {settings['limit']:g} s"
-    elif ending == "killed by SIGKILL":
-        point.status = "out of memory"
-        point.message = "killed by SIGKILL from outside (the out-of-memory killer, most likely)"
-    elif ending or not lines:
-        tail = " ".join(stderr.split())[-400:]
-        point.status = "out of memory" if memory_exhausted(stderr) else "error"
-        point.message = f"the point's process ended with {ending or 'no result'}: {tail}"
-    else:
-        result = json.loads(lines[-1])
-        for key, value in result.items():
-            setattr(point, key, value)
+    point = Point(problem, n, family, "error")
+    for key, value in run_child(CHILD, spec, env).items():
+        setattr(point, key, value)
     return point
+
+
+def run_pair(num: tuple, den: tuple, settings: dict, env: dict) -> dict:
+    """The ratio of two points' time per step, ``num`` and ``den`` each ``(problem, n,
+    family)``, measured side by side in one fresh process (:func:`pair_main`) under twice
+    a point's time limit.
+
+    Without the address-space cap: both points finished under it in their own processes,
+    and their pair needs no guard that they did not. With twice the cap, ida-ggl's pair
+    of chain:N=1024 and 16384 ended in SuperLU's failed allocation all the same (its
+    process resident at 1.0 GiB at most when uncapped): the two solvers' reserved address
+    space, not their memory, exceeds it.
+    """
+    spec = {"sides": [point_spec(*num, settings), point_spec(*den, settings)],
+            "rounds": settings["side_by_side"], "limit": 2.0 * settings["limit"],
+            "memory_limit": 0}
+    result = run_child(PAIR_CHILD, spec, env)
+    return {"num": list(num), "den": list(den), **result}
 
 
 def run_yardstick(exe: Path, problem: str, n: int, settings: dict
@@ -513,9 +629,11 @@ def _missing(point: Point | None, what: str) -> tuple[bool | None, str]:
 
 
 def _ratio_bar(name: str, pair: tuple, labels: tuple[str, str], limit: float,
-               unit: str = "") -> dict:
+               unit: str = "", side: dict | None = None) -> dict:
     """A bar on ``pair[0]``'s time per step over ``pair[1]``'s (wall clock; the CPU-time
-    ratio is given beside it)."""
+    ratio is given beside it): as measured side by side where ``side`` (:func:`run_pair`)
+    is given and finished, the ratio of the two separate processes beside it; else that
+    ratio."""
     # A point that did not finish fails the bar even where the other is left out.
     for p, label in sorted(zip(pair, labels), key=lambda x: x[0] is None):
         if p is None or p.status != "ok":
@@ -523,7 +641,17 @@ def _ratio_bar(name: str, pair: tuple, labels: tuple[str, str], limit: float,
     num, den = pair
     wall = num.wall_per_step / den.wall_per_step
     cpu = num.cpu_per_step / den.cpu_per_step
-    return _verdict(name, wall <= limit, f"{wall:.3g}{unit} (by CPU time {cpu:.3g}{unit})")
+    apart = f"{wall:.3g}{unit} (by CPU time {cpu:.3g}{unit})"
+    if side is None:
+        return _verdict(name, wall <= limit, apart)
+    if side["status"] != "ok":
+        return _verdict(name, wall <= limit, f"{apart} in separate processes; side by side: "
+                                             f"{side['status']} ({side['message']})")
+    return _verdict(name, side["ratio"] <= limit,
+                    f"{side['ratio']:.3g}{unit} side by side in one process (median of "
+                    f"{side['rounds']} rounds, {side['ratio_min']:.3g} to "
+                    f"{side['ratio_max']:.3g}; by CPU time {side['ratio_cpu']:.3g}{unit}); "
+                    f"in separate processes {apart}")
 
 
 def arithmetic(num: Point | None, den: Point | None) -> str:
@@ -580,8 +708,25 @@ def _memory_bar(name: str, point: Point | None, label: str, limit: int) -> dict:
     return _verdict(name, point.peak_rss < limit, f"{point.peak_rss / 2**20:.0f} MiB")
 
 
-def bars(points: list[Point], settings: dict) -> list[dict]:
-    """The bars of the scaling issue, each with PASS, FAIL or NOT MEASURED and its number."""
+def side_pairs(settings: dict, points: list[Point]) -> list[tuple[tuple, tuple]]:
+    """The ratios the bars read that are measured side by side as well (module notes):
+    each family's growth on each problem and rattle's time per body over per link, each
+    ``(numerator, denominator)`` of ``(problem, n, family)``, where both points finished."""
+    lo, hi = GROWTH_SIZES
+    pairs = [((problem, hi, family), (problem, lo, family))
+             for problem in settings["problems"] for family in settings["families"]]
+    pairs.append((("rigid-chain", RIGID_SIZE, "rattle"), ("chain", RIGID_SIZE, "rattle")))
+    done = {(p.problem, p.n, p.family) for p in points if p.status == "ok"}
+    return [pair for pair in pairs if pair[0] in done and pair[1] in done]
+
+
+def _side(sides: list[dict], num: tuple, den: tuple) -> dict | None:
+    return next((x for x in sides if (tuple(x["num"]), tuple(x["den"])) == (num, den)), None)
+
+
+def bars(points: list[Point], settings: dict, sides: list[dict] = ()) -> list[dict]:
+    """The bars of the scaling issue, each with PASS, FAIL or NOT MEASURED and its number;
+    ``sides`` are the ratios measured side by side (:func:`run_pair`)."""
     out = []
     for n in RATIO_SIZES:
         out.append(_ratio_bar(
@@ -595,7 +740,8 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
             pair = (_find(points, problem, family, hi), _find(points, problem, family, lo))
             bar = _ratio_bar(
                 f"{family} on {problem}: time{per} N={lo} -> {hi} grows <= {GROWTH_BAR:g}x",
-                pair, (f"{family} at N={hi}", f"{family} at N={lo}"), GROWTH_BAR, "x")
+                pair, (f"{family} at N={hi}", f"{family} at N={lo}"), GROWTH_BAR, "x",
+                _side(sides, (problem, hi, family), (problem, lo, family)))
             out.append({**bar, "value": bar["value"] + iterations(*pair)})
     spark = _find(points, "chain", "lobatto3ab3", SPARK_SIZE)
     name = (f"lobatto3ab3 finishes {SPARK_STEPS} steps of chain:N={SPARK_SIZE} with peak "
@@ -619,7 +765,8 @@ def bars(points: list[Point], settings: dict) -> list[dict]:
         f"rattle time per body on rigid-chain:N={RIGID_SIZE} <= {RIGID_PER_BODY:g}x its time "
         f"per link on chain:N={RIGID_SIZE}", rigid,
         (f"rattle on rigid-chain at N={RIGID_SIZE}", f"rattle on chain at N={RIGID_SIZE}"),
-        RIGID_PER_BODY, "x")
+        RIGID_PER_BODY, "x", _side(sides, ("rigid-chain", RIGID_SIZE, "rattle"),
+                                   ("chain", RIGID_SIZE, "rattle")))
     c = (_find(points, "rigid-chain", C_NAME, RIGID_SIZE),
          _find(points, "chain", C_NAME, RIGID_SIZE))
     out.append({**bar, "value": bar["value"] + arithmetic(*rigid) + in_c(rigid, c)})
@@ -733,6 +880,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--processes", type=int, default=1,
                    help="fresh processes per point, in rounds over the points; the median "
                         "process is reported (default 1)")
+    p.add_argument("--side-by-side", type=int, default=SIDE_ROUNDS, metavar="K",
+                   help="rounds of each ratio the growth and per-body bars read, measured "
+                        f"side by side in one process; 0 for none (default {SIDE_ROUNDS})")
     p.add_argument("--out", type=Path, default=Path("results/scaling"),
                    help="output folder (default: results/scaling)")
     return p
@@ -743,7 +893,7 @@ def settings_of(args) -> dict:
     if any(n < 2 for n in args.n):
         raise ValueError(f"--n {min(args.n)}: sizes must be at least 2 (the smallest ring)")
     for name, ok in (("steps", args.steps >= 1), ("repeats", args.repeats >= 1),
-                     ("processes", args.processes >= 1),
+                     ("processes", args.processes >= 1), ("side-by-side", args.side_by_side >= 0),
                      ("limit", math.isfinite(args.limit) and args.limit > 0),
                      ("memory-limit", math.isfinite(args.memory_limit)
                       and args.memory_limit >= 0),
@@ -779,7 +929,7 @@ def settings_of(args) -> dict:
             "families": list(dict.fromkeys(args.families)), "steps": args.steps, "h": steps,
             "rtol": args.rtol, "limit": args.limit,
             "memory_limit": int(args.memory_limit * 2**30), "repeats": args.repeats,
-            "processes": args.processes,
+            "processes": args.processes, "side_by_side": args.side_by_side,
             "newton_tol": newton_tol}
 
 
@@ -828,6 +978,16 @@ def main(argv: list[str] | None = None) -> int:
             agreements += agreed
             ok &= fine
         points = median_points(rounds)
+    sides = []
+    for num, den in side_pairs(settings, points) if settings["side_by_side"] else ():
+        side = run_pair(num, den, settings, env)
+        sides.append(side)
+        ok &= side["status"] != "error"
+        print(f"  side by side, {num[2]} on {num[0]}:N={num[1]} over {den[2]} on "
+              f"{den[0]}:N={den[1]}: " + (f"{side['ratio']:.3g} (median of {side['rounds']} "
+                                          f"rounds)" if side["status"] == "ok" else
+                                          f"{side['status']} ({side['message'][:160]})"),
+              flush=True)
     load_after = os.getloadavg()[0]
     for problem in settings["problems"]:
         print_table(points, problem)
@@ -845,7 +1005,7 @@ def main(argv: list[str] | None = None) -> int:
         exponent = "n/a (fewer than two finished points)" if f["exponent"] is None else \
             f"{f['exponent']:.2f} over N = {', '.join(map(str, f['n']))}"
         print(f"  {f['problem']:<11} {f['family']:<14} {exponent}")
-    verdicts = bars(points, settings)
+    verdicts = bars(points, settings, sides)
     print("\nbars:")
     for b in verdicts:
         print(f"  {b['verdict']:<12} {b['bar']}: {b['value']}")
@@ -859,7 +1019,7 @@ def main(argv: list[str] | None = None) -> int:
             "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
             "seconds": time.time() - started, "load": [load_before, load_after],
             "baseline_rss": baseline, "points": [asdict(p) for p in points],
-            "agreement": agreements, "fits": fitted, "bars": verdicts}
+            "agreement": agreements, "side_by_side": sides, "fits": fitted, "bars": verdicts}
     for path in write(args.out, data, points):
         print(f"wrote {path}")
     return 0 if ok else 1
