@@ -205,7 +205,7 @@ def test_a_ratio_side_by_side_alternates_both_points_in_one_process():
     from benchmarks.pool import thread_environment
 
     settings = {"h": {"chain": 0.05}, "steps": 5, "rtol": 1e-8, "newton_tol": 1e-16,
-                "side_by_side": 2, "limit": 120.0, "memory_limit": 8 << 30}
+                "side_by_side": 2, "limit": 120.0}
     env = {**os.environ, **thread_environment()}
     side = scaling.run_pair(("chain", 8, "rattle"), ("chain", 4, "rattle"), settings, env)
     assert side["status"] == "ok" and side["rounds"] == 2, side

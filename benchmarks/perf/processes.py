@@ -66,19 +66,29 @@ def like_a_worker() -> float:
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
+def timed_solve(solve) -> tuple:
+    """One call of a prepared ``solve``: ``(trajectory, wall_s, cpu_s, late_s)``, where
+    ``late_s`` is the set-up the call did (a program compiled on first need:
+    :func:`integrators.loop.march`), taken out of both times."""
+    late = getattr(solve, "late_setup_s", 0.0)
+    start, cpu = time.perf_counter(), time.process_time()
+    traj = solve()
+    late = getattr(solve, "late_setup_s", 0.0) - late
+    return (traj, time.perf_counter() - start - late, time.process_time() - cpu - late,
+            late)
+
+
 def timed_run(case, method):
     """``(trajectory, setup_s, wall_s)`` of ``method`` on ``case`` over its horizon: set-up
-    (compilation included, also a program the solve compiled on first need:
-    :func:`integrators.loop.march`) and the solve timed apart."""
+    (compilation included, also a program the solve compiled on first need) and the solve
+    timed apart (:func:`timed_solve`)."""
     from integrators.base import Grid
 
     start = time.perf_counter()
     solve = method.prepare(case, Grid(case.t0, case.t_end))
     setup = time.perf_counter() - start
-    start = time.perf_counter()
-    traj = solve()
-    late = getattr(solve, "late_setup_s", 0.0)
-    return traj, setup + late, time.perf_counter() - start - late
+    traj, wall, _, late = timed_solve(solve)
+    return traj, setup + late, wall
 
 
 def peak_rss(pid: int | str = "self") -> int | None:

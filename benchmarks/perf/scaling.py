@@ -159,7 +159,7 @@ import numpy as np
 
 from benchmarks import compilation
 from benchmarks.perf.processes import (compile_yardstick, like_a_worker, memory_exhausted,
-                                       peak_rss, run_process, state_difference)
+                                       peak_rss, run_process, state_difference, timed_solve)
 from benchmarks.records import EXIT_INPUT, CommandParser
 
 FAMILIES = ("rattle", "lobatto3ab3", "baumgarte-rk4", "ida-ggl")
@@ -253,18 +253,6 @@ def more(times: list[float], repeats: int) -> bool:
             and (len(times) < repeats or total < MIN_TIMED))
 
 
-def timed(solve) -> tuple:
-    """One solve: the trajectory, its wall-clock and CPU seconds, and the seconds of a
-    program compiled on first need (:func:`integrators.loop.march`), which are set-up and
-    taken out of both."""
-    late = getattr(solve, "late_setup_s", 0.0)
-    start, cpu = time.perf_counter(), time.process_time()
-    traj = solve()
-    late = getattr(solve, "late_setup_s", 0.0) - late
-    return (traj, time.perf_counter() - start - late, time.process_time() - cpu - late,
-            late)
-
-
 def prepare(spec: dict) -> tuple:
     """The prepared solve of the point ``spec`` describes, its building and its set-up
     seconds (in a process set up by :func:`like_a_worker`, the plugins loaded)."""
@@ -307,7 +295,7 @@ def point_main(argv: list[str]) -> int:
         solve, out["build_s"], out["setup_s"] = prepare(spec)
         walls, cpus = [], []
         while True:
-            traj, wall, cpu, late = timed(solve)
+            traj, wall, cpu, late = timed_solve(solve)
             walls.append(wall)
             cpus.append(cpu)
             out["setup_s"] += late
@@ -367,7 +355,7 @@ def pair_main(argv: list[str]) -> int:
             for i in ((1, 0) if r % 2 == 0 else (0, 1)):
                 walls, cpus = [], []
                 while not walls or (sum(walls) < MIN_TIMED and len(walls) < MAX_REPEATS):
-                    traj, wall, cpu, _ = timed(solves[i])
+                    traj, wall, cpu, _ = timed_solve(solves[i])
                     if traj.status != "ok":
                         side = spec["sides"][i]
                         raise Stopped(f"{side['family']} on {side['problem']}:N={side['n']}: "
