@@ -14,14 +14,14 @@ solution keeps ``g = 0``; numerical drift off it decays instead of accumulating.
 
 The time loop is ours, compiled with ``lax.while_loop`` around diffrax's ``solver.step``
 and ``PIDController.adapt_step_size`` (the same calls as diffrax's own loop), so that every
-accepted step is measured without storing the steps: the loop runs in chunks of a bounded
-number of steps and hands each chunk to :class:`integrators.record.Recorder`.
+accepted step is measured without storing the steps: the loop keeps the per-window maxima
+and the sampled states of :class:`integrators.record.Recorder`'s layout inside itself
+(:func:`integrators.record.tracker`), and a run is one call of it, whatever its length.
 
 An ensemble of the adaptive pairs (:meth:`BaumgarteEmbeddedRK.prepare_ensemble`) runs the
-same step attempts under ``jax.vmap`` in one compiled loop (:func:`run_lanes`): each lane
-has its own time, step size, controller state, counters and failure code, and keeps its
-windows and samples inside the loop (:func:`integrators.record.tracker`), so memory is
-bounded per lane. The vmapped ``while_loop`` runs until the last lane has ended; a lane
+same loop under ``jax.vmap`` (:func:`run_lanes`): each lane has its own time, step size,
+controller state, counters, failure code, windows and samples, so memory is bounded per
+lane. The vmapped ``while_loop`` runs until the last lane has ended; a lane
 that has ended (at ``t_end``, on a failure, at ``max_steps``) is carried unchanged, so a
 lane that fails stops only itself.
 """
@@ -39,11 +39,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix
 
-from integrators.base import Failure, Grid, Integrator
+from integrators.base import Failure, Grid, Integrator, Trajectory
 from integrators.fixed import FixedStep
-from integrators.loop import put
-from integrators.record import (Recorder, batch_length, ended, kept, series, series_names,
-                                tracker)
+from integrators.record import Tally, ended, kept, series, series_names, tracker
 from linalg.compiled import compile_lifted
 from problems.case import Case
 from problems.mechanics import Mechanics
@@ -228,64 +226,45 @@ def attempt(term, solver, control, params, error_order, st: LoopState
         n_attempts=st.n_attempts + 1, code=code.astype(jnp.int32)), accept
 
 
-@partial(jax.jit, static_argnames=("mech", "schur", "solver", "control"))
-def run_chunk(state: LoopState, params, *, mech, schur, solver, control):
-    """Make step attempts until a batch of accepted steps is full, or the run ends.
+def run(state: LoopState, params, *, mech, schur, solver, control, grid):
+    """Make step attempts from ``state`` until the run ends, in one compiled loop.
 
-    Returns ``(state, t, y, k)``: the accepted steps are ``t[:k]``, ``y[:k]``. The run ends
-    at ``t_end``, on a failure code, or after ``params["max_steps"]`` accepted steps.
-    Static arguments are hashable (the problem's :class:`Mechanics` by identity) and every
-    option is in ``params``, so one compilation serves every run of the same system,
-    solver and horizon.
-    """
-    term = _term(mech, schur, params)
-    error_order = solver.error_order(term)
-    rows, size = batch_length(mech.n), 2 * mech.n
-
-    def cond(carry):
-        k, st, _, _ = carry
-        return (k < rows) & running(st, control.t_end, params["max_steps"])
-
-    def body(carry):
-        k, st, buf_t, buf_y = carry
-        st, accept = attempt(term, solver, control, params, error_order, st)
-        # In-place row updates rather than scatters (see integrators.loop on why).
-        buf_t = put(buf_t, k, jnp.where(accept, st.t, buf_t[k]))
-        buf_y = put(buf_y, k, jnp.where(accept, st.y, buf_y[k]))
-        return k + accept, st, buf_t, buf_y
-
-    carry = (jnp.zeros((), jnp.int64), state, jnp.zeros(rows), jnp.zeros((rows, size)))
-    k, state, buf_t, buf_y = jax.lax.while_loop(cond, body, carry)
-    return state, buf_t, buf_y, k
-
-
-@partial(jax.jit, static_argnames=("mech", "schur", "solver", "control", "grid"))
-def run_lanes(states: LoopState, params, *, mech, schur, solver, control, grid):
-    """Run every lane of ``states`` (a :class:`LoopState` with a leading lane axis) to its
-    end, in one compiled loop under ``jax.vmap``.
-
-    Returns ``(states, tallies)``: each lane's final state and its windows and samples
-    (:class:`integrators.record.Tally`), measured at every accepted step as the single
-    run's :class:`~integrators.record.Recorder` measures them.
+    Returns ``(state, tally)``: the final loop state and the windows and samples
+    (:class:`integrators.record.Tally`) of every accepted step, measured inside the loop
+    (:func:`integrators.record.tracker`). The run ends at ``t_end``, on a failure code, or
+    after ``params["max_steps"]`` accepted steps. Static arguments are hashable (the
+    problem's :class:`Mechanics` by identity) and every option is in ``params``, so one
+    compilation serves every run of the same system, solver, horizon and grid.
     """
     term = _term(mech, schur, params)
     error_order = solver.error_order(term)
     start, add = tracker(mech, grid)
     n = mech.n
 
-    def lane(state):
-        def cond(carry):
-            return running(carry[0], control.t_end, params["max_steps"])
+    def cond(carry):
+        return running(carry[0], control.t_end, params["max_steps"])
 
-        def body(carry):
-            st, tally = carry
-            st, accept = attempt(term, solver, control, params, error_order, st)
-            return st, add(tally, accept, st.t, st.y[:n], st.y[n:])
+    def body(carry):
+        st, tally = carry
+        st, accept = attempt(term, solver, control, params, error_order, st)
+        return st, add(tally, accept, st.t, st.y[:n], st.y[n:])
 
-        tally = start(state.t, state.y[:n], state.y[n:])
-        return jax.lax.while_loop(cond, body, (state, tally))
+    tally = start(state.t, state.y[:n], state.y[n:])
+    return jax.lax.while_loop(cond, body, (state, tally))
 
-    return jax.vmap(lane)(states)
+
+STATIC = ("mech", "schur", "solver", "control", "grid")
+
+#: One run (:func:`run`), compiled.
+run_one = jax.jit(run, static_argnames=STATIC)
+
+
+@partial(jax.jit, static_argnames=STATIC)
+def run_lanes(states: LoopState, params, *, mech, schur, solver, control, grid):
+    """:func:`run` for every lane of ``states`` (a :class:`LoopState` with a leading lane
+    axis), in one compiled loop under ``jax.vmap``: ``(states, tallies)``."""
+    return jax.vmap(partial(run, params=params, mech=mech, schur=schur, solver=solver,
+                            control=control, grid=grid))(states)
 
 
 def _static(mech: Mechanics, params: dict, max_steps: int, solver, control,
@@ -299,10 +278,12 @@ def _static(mech: Mechanics, params: dict, max_steps: int, solver, control,
             dict(linear_solver=schur.name, pattern_nnz=schur.nnz))
 
 
-def _ending(state: LoopState, solver, control, max_steps: int, grid: Grid
-            ) -> tuple[str, dict[str, int]]:
-    """The failure message (empty for a run that reached ``t_end``) and the work counters
-    of a run that ended in ``state`` (host values)."""
+def _trajectory(state: LoopState, tally: Tally, names: list[str], solver, control,
+                max_steps: int, grid: Grid, sampling: str, solver_record: dict) -> Trajectory:
+    """The :class:`~integrators.base.Trajectory` of a run that ended in ``state`` with the
+    record ``tally`` of the series ``names`` (host values): its failure message, if any,
+    and its work counters."""
+    assert state.y.dtype == np.float64, "the loop must run in float64"
     code, t = int(state.code), float(state.t)
     steps, attempts = int(state.n_accepted), int(state.n_attempts)
     tableau = solver.tableau
@@ -318,35 +299,27 @@ def _ending(state: LoopState, solver, control, max_steps: int, grid: Grid
     if code:
         what = Failure(code).message.format(max_steps=max_steps, t_end=grid.t_end)
         message = f"{what}; at step {steps + 1} (t = {t:.6g} -> {float(state.t_next):.6g})"
-    return message, counts
+    n = state.y.shape[0] // 2
+    return ended(message, t, state.y[:n], state.y[n:], counts, sampling,
+                 series(grid, names, tally.wins, tally.hit),
+                 kept(tally.samp_t, tally.samp_q, tally.samp_v, tally.filled), **solver_record)
 
 
 def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: dict,
           max_steps: int, sampling: str, linear_solver: str = "auto"):
-    """Compile the loop and return ``solve()`` (runs chunks until done, then reports)."""
-    n = mech.n
+    """Compile the loop (:func:`run`) and return ``solve()``, which runs it from ``y0``
+    and returns the :class:`~integrators.base.Trajectory`."""
     params, static, solver_record = _static(mech, params, max_steps, solver, control,
                                             linear_solver)
     y0_device = jnp.asarray(y0)
     state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
-    chunk = compile_lifted(run_chunk, state0, params, **static)
-    recorder = Recorder(mech, grid)
+    compiled = compile_lifted(run_one, state0, params, grid=grid, **static)
+    names = series_names(mech)
 
     def solve():
-        recorder.start(grid.t0, y0[:n], y0[n:])
-        state = state0
-        while True:
-            state, buf_t, buf_y, k = jax.device_get(chunk(state, params))
-            k = int(k)
-            assert buf_y.dtype == np.float64, "the loop must run in float64"
-            recorder.extend(buf_t[:k], buf_y[:k, :n], buf_y[:k, n:])
-            if int(state.code) or float(state.t) >= grid.t_end or \
-                    int(state.n_accepted) >= max_steps:
-                break
-        message, counts = _ending(state, solver, control, max_steps, grid)
-        y = state.y
-        return recorder.trajectory(message, float(state.t), y[:n], y[n:], counts, sampling,
-                                   **solver_record)
+        state, tally = jax.device_get(compiled(state0, params))
+        return _trajectory(state, tally, names, solver, control, max_steps, grid, sampling,
+                           solver_record)
 
     return solve
 
@@ -356,7 +329,6 @@ def drive_lanes(mech: Mechanics, grid: Grid, y0s: np.ndarray, solver, control,
     """Compile the loop of an ensemble from the initial states ``y0s`` (one row per lane)
     and return ``solve()``, which runs it (:func:`run_lanes`) and returns one
     :class:`~integrators.base.Trajectory` per lane, as :func:`drive` would for that lane."""
-    n = mech.n
     params, static, solver_record = _static(mech, params, max_steps, solver, control,
                                             linear_solver)
     states0 = jax.vmap(partial(initial_state, **static), in_axes=(0, None))(
@@ -366,21 +338,11 @@ def drive_lanes(mech: Mechanics, grid: Grid, y0s: np.ndarray, solver, control,
 
     def solve():
         states, tallies = jax.device_get(compiled(states0, params))
-        assert states.y.dtype == np.float64, "the loop must run in float64"
-        trajs = []
-        for i in range(len(states.t)):
-            state = jax.tree_util.tree_map(lambda a: a[i], states)
-            tally = jax.tree_util.tree_map(lambda a: a[i], tallies)
-            message, counts = _ending(state, solver, control, max_steps, grid)
-            trajs.append(ended(message, float(state.t), state.y[:n], state.y[n:], counts,
-                               sampling, series(grid, names, tally.wins, tally.hit),
-                               kept(tally.samp_t, tally.samp_q, tally.samp_v, tally.filled),
-                               **solver_record))
-        return trajs
+        return [_trajectory(*jax.tree_util.tree_map(lambda a: a[i], (states, tallies)),
+                            names, solver, control, max_steps, grid, sampling, solver_record)
+                for i in range(len(states.t))]
 
     return solve
-
-
 @dataclass(frozen=True)
 class BaumgarteBase(Integrator):
     """Options shared by the fixed-step and the adaptive Baumgarte methods."""

@@ -7,7 +7,7 @@ stabilised index-2 residual (:func:`integrators.ida.ggl_residual`) or the index-
 here (:func:`index3_residual`). Its Jacobians come from autodiff of ``R`` in one place
 (:func:`iteration_blocks`). The loop runs step attempts inside ``lax.while_loop`` in
 chunks of a bounded number of accepted steps, which :class:`integrators.record.Recorder`
-measures, as the adaptive Baumgarte pairs do (:func:`integrators.baumgarte.run_chunk`).
+measures.
 """
 
 from __future__ import annotations

@@ -198,9 +198,7 @@ class Blocks:
         parts = []
         for (source, block), L in zip(plan.pieces, factors):
             k = len(L)
-            lower = [(i, j) for i in range(k) for j in range(i + 1)]
-            at = gather(jnp.stack([L[i][j] for i, j in lower], axis=1), block)   # (P, k(k+1)/2)
-            entry = {ij: at[:, c] for c, ij in enumerate(lower)}
+            entry = {(i, j): gather(L[i][j], block) for i in range(k) for j in range(i + 1)}
             r, y = gather(x, source), []                                        # r: (k, P)
             for i in range(k):
                 y.append((r[i] - sum((entry[i, l] * y[l] for l in range(i)),

@@ -52,7 +52,7 @@ import scipy.sparse as sp  # noqa: E402
 from linalg.blocks import Blocks, Whitening  # noqa: E402
 from linalg.compiled import device_index  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
-from linalg.pattern import traced_sparsity  # noqa: E402
+from linalg.pattern import CACHED_ENTRIES, traced_sparsity  # noqa: E402
 from linalg.schur import DENSE_KKT_MAX, DENSE_MAX, choose  # noqa: E402
 
 Array = jax.Array
@@ -411,9 +411,13 @@ class Mechanics:
                 np.concatenate([np.asarray(c, dtype=np.int64) for _, c in parts] + [empty]))
 
     def G_values(self, q: Array, t: Array) -> Array:
-        """The entries of ``G(q, t)`` in the order of :attr:`G_coloring` (compressed autodiff)."""
+        """The entries of ``G(q, t)`` in the order of :attr:`G_coloring` (compressed autodiff:
+        one pass per colour, all at once or, past :data:`linalg.pattern.CACHED_ENTRIES`, one
+        by one)."""
         coloring = self.G_coloring
-        compressed = asdex.compressed_jacobian_from_coloring(lambda x: self.g(x, t), coloring)(q)
+        at_once = coloring.num_colors * max(self.m, self.n) <= CACHED_ENTRIES
+        compressed = asdex.compressed_jacobian_from_coloring(
+            lambda x: self.g(x, t), coloring, chunk_size=None if at_once else 1)(q)
         return asdex.decompress_data(compressed, coloring)
 
     def rounding(self, q: Array, t: Array, x: Array | None = None) -> Array:

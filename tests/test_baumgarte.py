@@ -16,6 +16,7 @@ import problems
 from benchmarks.metrics import summarize
 from integrators import baumgarte
 from integrators.base import Grid, Status
+from integrators.record import Recorder, window_and_slot
 from rheonomic import spinning_rod
 
 PENDULUM = problems.make("pendulum")
@@ -116,3 +117,32 @@ def test_failures_are_data():
     capped, _ = run("baumgarte-dopri5:rtol=1e-6,max_steps=10", PENDULUM, 10.0)
     assert capped.status == Status.FAILED and "max_steps = 10" in capped.message
     assert capped.counts["n_steps"] == 10 and capped.t_final < 10.0
+
+
+def test_the_loop_records_a_run_as_the_host_recorder_would():
+    # Every step kept as a sample (201 slots for 200 steps), so that the host's Recorder
+    # can be fed the same points the compiled loop measured; steps land on window ends.
+    case = problems.make("pendulum").with_t_end(2.0)
+    grid = Grid(case.t0, case.t_end, n_windows=20, n_samples=201)
+    traj = integrators.make("baumgarte-rk4:h=0.01").prepare(case, grid)()
+    kept = traj.samples
+    assert traj.status == Status.OK and len(kept["t"]) == 201
+    recorder = Recorder(case.mech, grid)
+    recorder.start(kept["t"][0], kept["q"][0], kept["v"][0])
+    recorder.extend(kept["t"][1:], kept["q"][1:], kept["v"][1:])
+    host = recorder.windows()
+    assert list(host) == list(traj.windows) and len(host["t"]) == 20
+    # The same points measured by two compiled programs: equal to round-off of |g|, |G v|
+    # and H (the pendulum's energy is of order 10).
+    for name, series in host.items():
+        np.testing.assert_allclose(traj.windows[name], series, rtol=1e-12, atol=1e-14)
+
+
+def test_a_step_on_a_window_end_counts_in_the_window_it_ends_in_the_loop_and_on_the_host():
+    grid = Grid(0.0, 100.0, n_windows=1000)
+    k = np.arange(1, 10001)
+    t = 0.0 + k * (100.0 / 10000)                      # FixedSteps.grid_time
+    expected = (k - 1) // 10
+    host, _ = window_and_slot(t, grid)
+    loop, _ = jax.jit(lambda t: window_and_slot(t, grid, jax.numpy))(t)
+    assert np.array_equal(host, expected) and np.array_equal(np.asarray(loop), expected)
