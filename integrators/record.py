@@ -39,7 +39,6 @@ from problems.mechanics import Mechanics
 #: Host memory one batch of points may take (bytes); fixes the batch length.
 BATCH_BYTES = 1 << 22
 
-
 #: Margin of :func:`window_and_slot` (in windows or sample spacings): far above the
 #: rounding of a step's time, far below a step.
 BOUNDARY = 1e-9
