@@ -18,6 +18,16 @@ process shared it), the structured one 24 to 41 s. The bar: the structured path 
 (``ok``) with max ``|g|`` at most :data:`G_BAR`, energy and angular momentum bounded like
 the dense path's.
 
+The dense path fails at t = 18.75 (step 3751, Newton's residual 2.0e-5). That step is the
+trajectory's, not the dense Newton's: started from the state the dense path reached there
+(multipliers zero), its Newton cycled for 50 iterations with the residual between 2e-5 and
+2e-2 and corrections of the multipliers of 1.6e4 to 5e5, as Newton does where the
+equations have no root near its start, and the structured path, fallback included, failed
+the same step from the same state (52 iterations, residual 2.3e-5; scratch script, load
+about 1). The lattice is chaotic, and the two paths' rounding differs: their positions
+were 1.5e-7 apart at t = 5, 0.66 at t = 10 and 1.04 at t = 18.75 (coordinates of size 2),
+so the structured path does not meet that state.
+
 Usage::
 
     python -m benchmarks.perf.robustness
