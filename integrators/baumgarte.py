@@ -343,6 +343,8 @@ def drive_lanes(mech: Mechanics, grid: Grid, y0s: np.ndarray, solver, control,
                 for i in range(len(states.t))]
 
     return solve
+
+
 @dataclass(frozen=True)
 class BaumgarteBase(Integrator):
     """Options shared by the fixed-step and the adaptive Baumgarte methods."""
