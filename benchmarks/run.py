@@ -147,7 +147,9 @@ def check_arguments(args) -> None:
         value = getattr(args, name)
         for x in value if isinstance(value, list) else ([] if value is None else [value]):
             if not ok(x):
-                raise InputError(f"--{name.replace('_', '-')} {x:g}: must be {must}")
+                # As given: a whole number in full (1e+08 would not be what was typed).
+                shown = x if isinstance(x, int) else f"{x:g}"
+                raise InputError(f"--{name.replace('_', '-')} {shown}: must be {must}")
 
 
 def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:

@@ -235,6 +235,7 @@ def test_command_line_records_quantiles_lanes_and_report(tmp_path):
 
 
 @pytest.mark.parametrize("argv, what", [(["--ensemble", "0"], "--ensemble 0"),
+                                        (["--ensemble", "100000000"], "--ensemble 100000000"),
                                         (["--ensemble", "2", "--seed", "-1"], "--seed -1")])
 def test_bad_ensemble_arguments_are_one_line(tmp_path, capsys, argv, what):
     code = cli.main(["--problems", "pendulum", "--integrators", "rattle", "--out",
