@@ -114,7 +114,8 @@ COMMAND_BUFFER_FLAGS = ("--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL",
                         "--xla_gpu_graph_min_graph_size=1")
 
 
-#: Compiled loops kept for reuse (each holds its executable; a sweep needs one).
+#: Compiled loops kept for reuse (each holds its executable; a sweep needs one), and the
+#: functions that move an ensemble's retaken lanes in and out of theirs (:func:`march`).
 CACHE_SIZE = 8
 _LOOPS: OrderedDict = OrderedDict()
 
@@ -208,6 +209,26 @@ def attempt(step: Step, observe: Callable[[Any], tuple[jax.Array, jax.Array]], c
     new, code, resid, work, seen = trial(step, observe, carry, t, h)
     carry = jax.tree_util.tree_map(lambda a, b: jnp.where(code == 0, a, b), new, carry)
     return carry, code, resid, work, seen
+
+
+def take_lanes(state, E0, I0, pick):
+    """The arguments of an ensemble loop's ``run`` (:func:`_loop`) for the lanes ``pick`` of
+    ``state``, cleared of their failures, at the first of their steps."""
+    _, lane, carry, code, resid, *rest = state
+    sub = jax.tree_util.tree_map(lambda a: a[pick], (lane, carry, jnp.zeros_like(code),
+                                                     jnp.zeros_like(resid), *rest))
+    return (jnp.min(sub[0]), *sub), E0[pick], I0[pick]
+
+
+def put_lanes(state, qv, sub, sub_qv, pick):
+    """``(state, qv)`` with the lanes ``pick`` replaced by the results ``(sub, sub_qv)`` of
+    :func:`take_lanes`' lanes (in the same order; a lane picked twice gets the same result
+    twice)."""
+    k, lane, carry, code, resid, *rest = state
+    new = [jax.tree_util.tree_map(lambda a, b: a.at[pick].set(b), x, y)
+           for x, y in zip((lane, carry, code, resid, *rest, *qv), (*sub[1:], *sub_qv))]
+    lane, carry, code, resid, *rest, q, v = new
+    return (k, lane, carry, code, resid, *rest), (q, v)
 
 
 def _loop(mech: Mechanics, grid: Grid, step: Step,
@@ -437,6 +458,28 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         solve.late_setup_s += time.perf_counter() - start
         return loop
 
+    def regroup(w, state, qv, E0, I0, pick):
+        # The compiled functions that take the lanes `pick` (w of them) out of the state
+        # and put their results back, compiled as set-up like the loop they serve. Run
+        # op by op, they cost the first solve that retook lanes 1.5 s of compiling and
+        # each later one about 22 ms of dispatch, which the solve's timing charged to the
+        # method (16 lanes of genalpha on the pendulum, h = 0.2 to t = 20: 32 ms per
+        # solve against 8 ms now, load 1.5).
+        tag = None if cache_key is None else (cache_key, "regroup", w)
+        pair = _LOOPS.get(tag) if tag is not None else None
+        if pair is None:
+            start = time.perf_counter()
+            gather = jax.jit(take_lanes).lower(state, E0, I0, pick).compile()
+            sub_state = jax.eval_shape(take_lanes, state, E0, I0, pick)[0]
+            sub_qv = jax.tree_util.tree_map(
+                lambda a: jax.ShapeDtypeStruct((w,) + a.shape[1:], a.dtype), qv)
+            scatter = jax.jit(put_lanes).lower(state, qv, sub_state, sub_qv, pick).compile()
+            solve.late_setup_s += time.perf_counter() - start
+            pair = (gather, scatter)
+            if tag is not None:
+                _LOOPS[tag] = pair
+        return pair
+
     def retake(state, qv, E0, I0):
         # A step failed without the fallback: the loop with it takes that step again,
         # from the state before it.
@@ -444,24 +487,17 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         if not lanes:
             return exact_loop()[1]((lane, lane, carry, jnp.zeros_like(code),
                                     jnp.zeros_like(resid), *rest), E0, I0, *args)
-        q, v = qv
         # The lanes that failed go on from the steps they failed at, together, with the
         # fallback (one more compiled loop, of a power-of-two width so that few widths
-        # are compiled; padded with repeats of the first), and their results replace
-        # theirs: only the steps from each lane's failure on are taken again.
+        # are compiled; padded with repeats of the first, which compute alike and write
+        # alike), and their results replace theirs: only the steps from each lane's
+        # failure on are taken again.
         failed = np.flatnonzero(np.asarray(code))
         w = 1 << int(len(failed) - 1).bit_length()
         pick = jnp.asarray(np.concatenate([failed, np.full(w - len(failed), failed[0])]))
-        sub = jax.tree_util.tree_map(lambda a: a[pick], (lane, carry, jnp.zeros_like(code),
-                                                         jnp.zeros_like(resid), *rest))
-        out, (sub_q, sub_v) = exact_loop(w)[1]((jnp.min(sub[0]), *sub), E0[pick], I0[pick],
-                                               *args)
-        at = jnp.asarray(failed)
-        lane, carry, code, resid, *rest, q, v = [
-            jax.tree_util.tree_map(lambda a, b: a.at[at].set(b[:len(failed)]), x, y)
-            for x, y in zip((lane, carry, code, resid, *rest, q, v),
-                            (*out[1:], sub_q, sub_v))]
-        return (state[0], lane, carry, code, resid, *rest), (q, v)
+        loop = exact_loop(w)[1]
+        gather, scatter = regroup(w, state, qv, E0, I0, pick)
+        return scatter(state, qv, *loop(*gather(state, E0, I0, pick), *args), pick)
 
     def solve():
         state, E0, I0 = begin(carry0)
