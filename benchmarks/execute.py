@@ -292,6 +292,9 @@ def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing,
                  "final_state_error"):
         table[name] = np.array([row[name] for row in rows], dtype=float)
     table["t_final"] = np.array([traj.t_final for traj in trajs], dtype=float)
+    for key in ("fail_step", "fail_time"):
+        table[key] = np.array([np.nan if getattr(traj, key) is None else getattr(traj, key)
+                               for traj in trajs], dtype=float)
     for key in COUNTERS:
         table[key] = np.array([traj.counts.get(key, 0) for traj in trajs], dtype=float)
     inv = {name[len("max_inv:"):]: np.array([row[name] for row in rows], dtype=float)
@@ -316,7 +319,8 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     """The record of an ensemble from the :class:`Part` of each chunk of its lanes.
 
     Per lane (:attr:`Record.lanes`): its seed index, its :class:`~integrators.base.Status`
-    as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize` and its work
+    as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize`, the time it
+    reached, the step and time of its failure (NaN where it finished) and its work
     counters, in lane order. The record's metrics are the worst lane's (the maxima over the
     lanes that finished), its work the sum over lanes (the work the timed solves did), its
     drift series the per-window maxima over the lanes (with their medians beside them as
@@ -338,7 +342,7 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     inv = {name: _given(np.nanmax(np.concatenate([part.inv[name] for part in parts])[ok]))
            if ok.any() else None for name in parts[0].inv}
     energy = np.concatenate([part.energy for part in parts])
-    max_energy = _given(np.nanmax(energy)) if ok.any() and parts[0].has_energy else None
+    max_energy = _given(np.nanmax(energy[ok])) if ok.any() and parts[0].has_energy else None
     metrics = replace(nominal.metrics, **worst, max_energy_error=max_energy,
                       invariant_errors=json.dumps(inv) if inv else "",
                       **growth_of(windows, run.run.t0,

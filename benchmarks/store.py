@@ -553,7 +553,9 @@ def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
 def load_lanes(db, run_id: int) -> pd.DataFrame:
     """An ensemble's per-lane table: one row per lane, columns ``seed`` (the lane's index,
     which with the run's seed draws its initial state), ``status`` (0 ok, 1 failed), the
-    lane's metrics and work counters. Empty for a single run."""
+    lane's metrics, ``t_final``, ``fail_step`` and ``fail_time`` (NaN where the lane
+    finished; stores written before these columns lack them) and its work counters. Empty
+    for a single run."""
     lanes = load_series(db, run_id)["lanes"]
     frame = pd.DataFrame(lanes)
     for column in ("seed", "status", "n_steps", "n_rejected", "n_f_evals", "n_jac_evals",

@@ -6,7 +6,8 @@ per-lane distributions of each metric per method (box plots from the stored per-
 tables), and the median lane's accuracy against cost per lane with a band from the best
 lane to the worst beside the failed fraction against the setting. The verdicts name the
 method with the smallest worst-lane (q100) and the smallest median-lane (q50) max rel.
-energy error (max |g| where energy is not conserved), each said to be which.
+energy error (max |g| where energy is not conserved), each said to be which, among the
+runs whose every lane finished.
 """
 
 from __future__ import annotations
@@ -37,18 +38,24 @@ def section(doc: Document, runs: pd.DataFrame, series, colors: dict, draw) -> No
 
 
 def _verdicts(runs: pd.DataFrame) -> str:
+    # Only runs whose every lane finished take part: the quantiles are over the lanes that
+    # finished, so a run with failed lanes would otherwise be judged on its survivors (its
+    # worst lane is one that failed).
     metric = "energy" if runs["energy_q50"].notna().any() else "pos"
     name = "max rel. energy error" if metric == "energy" else "max |g|"
+    whole = runs[runs["failed_fraction"].astype(float) == 0]
     parts = []
     for q, which in ((100, "worst lane"), (50, "median lane")):
         column = f"{metric}_q{q}"
-        done = runs[runs[column].notna()]
+        done = whole[whole[column].notna()]
         if done.empty:
             continue
         best = done.loc[done[column].astype(float).idxmin()]
         parts.append(f"smallest {name} of the {which} (q{q}): {best['integrator']} "
                      f"{setting(best)} ({fmt(best[column])})")
-    return "Verdicts: " + ("; ".join(parts) if parts else "no ensemble finished a lane") + "."
+    if not parts:
+        return "Verdicts: no run finished every lane."
+    return ("Verdicts, among the runs whose every lane finished: " + "; ".join(parts) + ".")
 
 
 def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, draw) -> None:
@@ -65,17 +72,18 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                      fmt(r["wall_s"])])
     doc.add(Table(["integrator", "setting", "lanes", "run as", "failed", "max|g| q50", "q90",
                    "q100", "energy q50", "q90", "q100", "wall s"], rows,
-                  "Quantiles over the lanes of max |g| and of max rel. energy error; 'failed' "
-                  "is the fraction of lanes that did not finish."))
+                  "Quantiles over the lanes that finished of max |g| and of max rel. energy "
+                  "error; 'failed' is the fraction of lanes that did not finish."))
     entries = [{"label": f"{r['integrator']} {setting(r)}", "integrator": r["integrator"],
                 "lanes": series(int(r["run_id"]))["lanes"]} for _, r in runs.iterrows()]
     entries = [e for e in entries if e["lanes"]]
     if entries:
         doc.add(Figure(f"{problem}-ensemble-distributions",
                        draw(figures.distributions, entries, colors, problem),
-                       "Per-lane distributions, one box per run: the box spans the middle "
-                       "half of the lanes, the whiskers every lane, the line the median."))
+                       "Per-lane distributions of the lanes that finished, one box per run: "
+                       "the box spans the middle half of them, the whiskers all of them, the "
+                       "line the median."))
     doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
                    "Left: the median lane against wall time per lane, the band from the best "
-                   "lane to the worst. Right: the fraction of lanes that failed against the "
+                   "lane to the worst (lanes that finished). Right: the fraction of lanes that failed against the "
                    "setting."))

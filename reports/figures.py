@@ -488,8 +488,9 @@ def scaling(panels: list[tuple[str, list[dict]]], colors: dict) -> str:
 def distributions(entries: list[dict], colors: dict, title: str) -> str:
     """Per-lane distributions of an ensemble's metrics: one box per run (``entries``: dicts
     with ``label``, ``integrator`` and ``lanes``, the per-lane table), one panel per metric
-    (max |g|, max |G v + g_t|, max rel. energy error), log scale. Boxes span the quartiles,
-    whiskers the extremes (every lane is inside them), a line marks the median."""
+    (max |g|, max |G v + g_t|, max rel. energy error), log scale, over the lanes that
+    finished. Boxes span the quartiles, whiskers the extremes (every such lane is inside
+    them), a line marks the median."""
     panels = [("max_pos_residual", "max |g| per lane"),
               ("max_vel_residual", "max |G v + g_t| per lane"),
               ("rel_energy_error", "max rel. energy error per lane")]
