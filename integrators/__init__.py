@@ -37,9 +37,24 @@ REGISTRY: dict[str, tuple[str, dict[str, object]]] = {
 
 
 def register(key: str, target: str, **preset) -> None:
-    """Register ``key`` for the class at ``"module:Class"`` with preset options."""
+    """Register ``key`` for the class at ``"module:Class"`` with preset options.
+
+    Raises
+    ------
+    ValueError
+        ``key`` is taken, or ``target`` names no class (checked now, so that the error
+        points at the registration, not at the first run).
+    """
     if key in REGISTRY:
         raise ValueError(f"integrator {key!r} registered twice")
+    module, _, name = target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise ValueError(f"integrator {key!r}: target {target!r} is not a class "
+                         f"'module:Class' that can be imported ({exc})") from None
+    if not (isinstance(cls, type) and issubclass(cls, Integrator)):
+        raise ValueError(f"integrator {key!r}: target {target!r} is not an Integrator class")
     REGISTRY[key] = (target, preset)
 
 

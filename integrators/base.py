@@ -17,6 +17,7 @@ from typing import Callable, ClassVar
 
 import numpy as np
 
+from linalg.schur import KINDS
 from linalg.sparse import FALLBACK_MAX
 from problems.case import Case
 from problems.source import located
@@ -205,3 +206,7 @@ class Integrator:
         if limit is not None and not limit >= 1:
             raise ValueError(located(f"{cls.__name__}: newton_max_iter = {limit} must be >= 1",
                                      cls))
+        if hasattr(self, "linear_solver"):
+            # Refused here, before any run: at the first step it would make every run of
+            # a suite an error.
+            self.check_choice("linear_solver", KINDS)

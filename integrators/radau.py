@@ -29,7 +29,6 @@ from integrators.loop import CACHE_SIZE, put
 from integrators.record import Recorder, batch_length
 from linalg.compiled import compile_lifted
 from linalg.dense import lu_factor, lu_solve
-from linalg.schur import KINDS
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -752,7 +751,6 @@ class RadauIIA(Integrator):
         super().check()
         name = type(self).__name__
         self.check_choice("formulation", FORMULATIONS)
-        self.check_choice("linear_solver", KINDS)
         if not 0 < self.safety <= 1:
             raise ValueError(f"{name}: safety = {self.safety} must lie in (0, 1]")
         if not (self.first_step > 0 and self.max_step > 0 and self.max_steps >= 1):
