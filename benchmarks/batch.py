@@ -72,8 +72,9 @@ import problems
 from benchmarks.execute import merge
 from benchmarks.executors import Executor, Outcome, Task, load_plugins, use
 from benchmarks.files import FolderInUse, FolderLock, replace_file
-from benchmarks.plan import DEFAULT_TIMEOUT, PlannedRun, check_timeout, firsts, pending, plan
-from benchmarks.pool import Pool, usable_cpus
+from benchmarks.plan import (DEFAULT_TIMEOUT, PlannedRun, check_timeout, firsts, pending, plan,
+                             usable_cpus)
+from benchmarks.pool import Pool
 from benchmarks.records import (COLUMNS, Ending, InputError, Record, RunSpec, Status, one_line,
                                 provenance)
 from benchmarks.store import STORE_NAME, Store, StoreError
@@ -459,12 +460,17 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
         rows = [r.row for r in records if r is not None]
         try:
             _write_csv(csv_path, rows)
-            partial.unlink(missing_ok=True)
         except OSError as exc:
             fail(f"{csv_path}: {exc.strerror or exc}; it was left as it was, the rows of "
                  f"the runs that ended are in {store.path} and {partial}")
-            if partial.exists() and partial.stat().st_size == 0:
+            if partial.is_file() and partial.stat().st_size == 0:
                 partial.unlink()
+        else:
+            try:
+                partial.unlink(missing_ok=True)
+            except OSError as exc:  # runs.csv holds every row: only the leftover is named
+                fail(f"{partial}: {exc.strerror or exc}; it could not be removed, and "
+                     f"{csv_path} holds every row")
     records = [records[first] for first in firsts(runs)]
     if failures:
         raise OutputError(one_line(f"not every result was written: {failures[0]}"

@@ -47,8 +47,8 @@ from typing import Callable, Iterable
 import distributed
 
 from benchmarks.executors import Outcome, Task, pick
-from benchmarks.plan import cluster_address
-from benchmarks.pool import STARTUP_LIMIT, Pool, timing_note, usable_cpus
+from benchmarks.plan import cluster_address, usable_cpus
+from benchmarks.pool import STARTUP_LIMIT, Pool, timing_note
 from benchmarks.records import InputError, one_line, provenance
 
 #: Seconds to wait for a scheduler to answer, and for a cluster to have a worker.

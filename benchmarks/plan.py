@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 import re
 from dataclasses import dataclass
 from typing import Iterable
@@ -34,7 +35,7 @@ import problems
 from benchmarks import compilation
 from benchmarks.audit import AuditError, audit, explain
 from benchmarks.records import InputError, Run, RunSpec, identity, one_line, run_key
-from problems.ensemble import MAX_LANES
+from problems.ensemble import MAX_LANES, MAX_SEED
 from problems.spec import IntegratorSpec, ProblemSpec, SpecError
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
@@ -94,13 +95,22 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     Raises
     ------
     SpecError
-        An unknown name, parameter or option, or a value of the wrong type.
+        An unknown name, parameter or option, or a value of the wrong type; a method whose
+        spec sets a setting that is also swept (``rattle:h=0.02`` with ``hs``).
     """
     resolved = [problems.resolve(p, origin) for p in problem_specs]
     methods = [integrators.resolve(i, origin) for i in integrator_specs]
     ensemble = ((None, None) if lanes is None else (int(lanes), int(seed or 0))) + (
         device, lanes_per_chunk)
     runs = []
+    for i in methods:
+        # A setting in the method's spec and a sweep of it: which one runs would be hidden
+        # behind a label that names the other.
+        for name, sweep in (("h", hs), ("rtol", rtols), ("atol", atols)):
+            if sweep and name in i.kwargs:
+                raise SpecError(f"integrator {str(i)!r} sets {name} = {i.kwargs[name]!r}, and "
+                                f"{name} is also swept ({', '.join(map(str, sweep))}): give "
+                                f"it in one place")
     for p, i in itertools.product(resolved, methods):
         if integrators.cls_of(i.name).adaptive:
             for rtol, atol in itertools.product(rtols or [None], atols or [None]):
@@ -191,13 +201,14 @@ ENSEMBLE_GRID = {"n_windows": 64, "n_samples": 3}
 
 
 def check_ensemble(lanes, seed, where: str, per_chunk=LANES_PER_CHUNK) -> None:
-    """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes, a seed >= 0 and at
-    least 2 lanes per chunk (a chunk of one lane would compile otherwise than a batch)."""
+    """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes, a seed from 0 to
+    :data:`~problems.ensemble.MAX_SEED` and at least 2 lanes per chunk (a chunk of one lane would compile otherwise than a batch)."""
     if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= MAX_LANES:
         raise InputError(f"{where}: ensemble = {lanes!r} must be a whole number of lanes "
                          f"from 1 to {MAX_LANES}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise InputError(f"{where}: seed = {seed!r} must be a whole number >= 0")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise InputError(f"{where}: seed = {seed!r} must be a whole number from 0 to "
+                         f"{MAX_SEED}")
     if isinstance(per_chunk, bool) or not isinstance(per_chunk, int) or per_chunk < 2:
         raise InputError(f"{where}: lanes_per_chunk = {per_chunk!r} must be a whole number "
                          f">= 2")
@@ -210,6 +221,23 @@ def check_timeout(value, where: str) -> None:
                          f"seconds (inf for no limit)")
 
 
+def usable_cpus() -> list[int]:
+    """The cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
+
+
+#: Most worker processes per usable core (``--jobs``, ``local:N``): each is a process that
+#: imports JAX and compiles, a few hundred MiB; thousands of them would only exhaust memory.
+WORKERS_PER_CORE = 4
+
+
+def max_workers() -> int:
+    """The most worker processes a batch may start on this machine."""
+    return WORKERS_PER_CORE * len(usable_cpus())
+
+
 def cluster_address(address: str) -> tuple[int | None, str | None]:
     """``(N, None)`` for ``local:N``, ``(None, address)`` for ``tcp://HOST:PORT``
     (:class:`benchmarks.cluster.Cluster`).
@@ -220,7 +248,10 @@ def cluster_address(address: str) -> tuple[int | None, str | None]:
         Any other address.
     """
     local = re.fullmatch(r"local:(\d+)", address.strip())
-    if local and int(local.group(1)) >= 1:
+    if local and not 1 <= int(local.group(1)) <= max_workers():
+        raise InputError(f"cluster {address!r}: local:N takes 1 to {max_workers()} workers "
+                         f"({WORKERS_PER_CORE} per usable core)")
+    if local:
         return int(local.group(1)), None
     if re.fullmatch(r"tcp://[^\s:/]+:\d+", address.strip()):
         return None, address.strip()

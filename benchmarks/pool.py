@@ -67,6 +67,7 @@ import problems
 from benchmarks import compilation
 from benchmarks.execute import MAX_EXTRA_S, MAX_SOLVES, MIN_TOTAL_S
 from benchmarks.executors import Outcome, Task, load_plugins, perform, pick
+from benchmarks.plan import usable_cpus
 from integrators.loop import kernel_environment
 
 #: One intra-op thread per worker, so that N jobs on N cores do not oversubscribe.
@@ -157,13 +158,6 @@ def timing_note(placement: str, repeats: int) -> str:
             f"run of the same problem and method compiled in its worker). Not controlled: "
             f"other processes on the machine and shared caches and memory bandwidth; "
             f"1-minute load average at the start: {load}.")
-
-
-def usable_cpus() -> list[int]:
-    """The cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return sorted(os.sched_getaffinity(0))
-    return list(range(os.cpu_count() or 1))
 
 
 def signal_text(exitcode: int | None) -> str:

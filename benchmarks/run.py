@@ -134,11 +134,14 @@ def argument_ranges() -> dict:
     """Command-line numbers: option -> (test of one value, what each value must be); the
     same ranges as in suite files, and ``--jobs``."""
     from benchmarks import suites
+    from benchmarks.plan import WORKERS_PER_CORE, max_workers
 
+    most = max_workers()
     return {**{key: suites.RANGES[key] for key in ("h", "rtol", "atol", "t_end", "timeout",
                                                     "repeats", "ensemble", "seed",
                                                     "lanes_per_chunk")},
-            "jobs": (lambda x: x >= 1, "at least 1")}
+            "jobs": (lambda x: 1 <= x <= most,
+                     f"from 1 to {most} ({WORKERS_PER_CORE} per usable core)")}
 
 
 def check_arguments(args) -> None:

@@ -63,7 +63,7 @@ import integrators
 import problems
 from benchmarks.plan import DEVICES, cluster_address, expand
 from benchmarks.records import InputError, RunSpec
-from problems.ensemble import MAX_LANES
+from problems.ensemble import MAX_LANES, MAX_SEED
 from problems.spec import SpecError, suggest
 from studies import STUDIES
 
@@ -106,7 +106,7 @@ RANGES = {
     "budget": (lambda x: math.isfinite(x) and x > 0, "a positive number of seconds"),
     "targets": (lambda x: math.isfinite(x) and x > 0, "positive and finite"),
     "ensemble": (lambda x: 1 <= x <= MAX_LANES, f"a number of lanes from 1 to {MAX_LANES}"),
-    "seed": (lambda x: x >= 0, "at least 0"),
+    "seed": (lambda x: 0 <= x <= MAX_SEED, f"from 0 to {MAX_SEED}"),
     "device": (lambda x: x in DEVICES, f"one of {', '.join(DEVICES)}"),
     "lanes_per_chunk": (lambda x: x >= 2, "at least 2"),
 }

@@ -31,6 +31,8 @@ from problems.case import CONSISTENT_TOL, Case, project
 
 #: Most lanes of one ensemble (the loop's memory is a few kilobytes per lane).
 MAX_LANES = 1 << 20
+#: Largest seed: the store keeps it as a signed 64-bit integer.
+MAX_SEED = (1 << 63) - 1
 #: Probes of the estimate of ``tr M(q0)`` that scales the velocity noise.
 TRACE_PROBES = 16
 

@@ -63,6 +63,11 @@ def main(argv=None) -> int:
     except (StoreError, ScalingError) as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
+    except OSError as exc:  # an output folder that cannot be made or written
+        print(f"error: the report could not be written under {args.out}: "
+              f"{exc.strerror or exc}{f' ({exc.filename})' if exc.filename else ''}",
+              file=sys.stderr)
+        return EXIT_INPUT
     for path in paths[:2]:
         print(f"wrote {path}")
     print(f"wrote {len(paths) - 2} figures under {args.out / 'figures'}")

@@ -291,7 +291,12 @@ def test_a_problem_without_errors_to_plot_gets_a_sentence_not_an_empty_convergen
 def test_bad_command_line_input_is_one_line_and_exit_2(tmp_path, capsys):
     from reports.__main__ import main
 
-    for argv in (["--x", "flops"], ["--targets", "-1"], ["--db", str(tmp_path / "none")]):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    db = tmp_path / "driftbench.sqlite"
+    fill(db)
+    for argv in (["--x", "flops"], ["--targets", "-1"], ["--db", str(tmp_path / "none")],
+                 ["--db", str(db), "--out", str(afile)]):  # --out a file, not a folder
         with pytest.raises(SystemExit) as exc:
             code = main(["--out", str(tmp_path), *argv])
             raise SystemExit(code)

@@ -46,7 +46,7 @@ COMMAND_LINES = [
     ("modes-below-one", ["--problems", "flexible-spacecraft:n_modes=-1", "--integrators",
                          "rattle"], ["n_modes = -1"]),
     ("timeout-negative", [*GOOD, "--timeout", "-1"], ["--timeout -1", "positive"]),
-    ("jobs-zero", [*GOOD, "--jobs", "0"], ["--jobs 0", "at least 1"]),
+    ("jobs-zero", [*GOOD, "--jobs", "0"], ["--jobs 0", "from 1 to"]),
     ("repeats-zero", [*GOOD, "--repeats", "0"], ["--repeats 0", "at least 1"]),
     ("mass-negative", ["--problems", "pendulum:mass=-1", "--integrators", "rattle"],
      ["pendulum", "mass = -1.0", "positive"]),
@@ -62,6 +62,16 @@ COMMAND_LINES = [
     ("cluster-malformed", [*GOOD, "--cluster", "locl:2"], ["cluster 'locl:2'", "local:N"]),
     ("jobs-and-cluster", [*GOOD, "--jobs", "1", "--cluster", "local:1"],
      ["either jobs", "or a cluster"]),
+    ("jobs-too-many", [*GOOD, "--jobs", "100000"], ["--jobs 100000", "per usable core"]),
+    ("cluster-too-many", [*GOOD, "--cluster", "local:100000"],
+     ["cluster 'local:100000'", "per usable core"]),
+    ("seed-too-large", [*GOOD, "--ensemble", "2", "--seed", str(2 ** 63)],
+     [f"--seed {2 ** 63}", f"{2 ** 63 - 1}"]),
+    ("linear-solver-unknown", ["--problems", "pendulum", "--integrators",
+                               "rattle:linear_solver=lu"],
+     ["rattle.py:", "linear_solver = 'lu'", "auto, dense, banded"]),
+    ("h-in-spec-and-swept", ["--problems", "pendulum", "--integrators", "rattle:h=0.02", "--h",
+                             "0.01"], ["'rattle:h=0.02' sets h = 0.02", "also swept"]),
 ]
 
 #: (id, suite file text, line the message must name (0: none), words it must hold)
@@ -93,7 +103,9 @@ SUITE_FILES = [
                         'integrators = ["rattle"]\n', 1, ["'repeats' must be a whole number"]),
     ("empty", 'description = "nothing"\n', 0, ["no [[group]] table and no studies"]),
     ("cluster-no-workers", 'cluster = "local:0"\n[[group]]\nproblems = ["pendulum"]\n'
-                           'integrators = ["rattle"]\n', 1, ["cluster 'local:0'", "N >= 1"]),
+                           'integrators = ["rattle"]\n', 1, ["cluster 'local:0'", "takes 1 to"]),
+    ("seed-too-large", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                       f'ensemble = 2\nseed = {2 ** 63}\n', 5, ["'seed'", f"{2 ** 63 - 1}"]),
     ("bad-parameter-in-group", '[[group]]\nproblems = ["pendulum:L=-1"]\n'
                                'integrators = ["rattle"]\nh = [0.1]\n', 1,
      ["([[group]] 1)", "pendulum", "L = -1.0", "positive"]),
@@ -143,3 +155,13 @@ def test_bad_suite_files_are_refused_with_file_and_line(text, line_no, words, tm
     for word in words:
         assert word in line
     assert not out.exists()
+
+
+@pytest.mark.parametrize("target", ["no_such_module:Euler", "integrators.rattle:NoSuchClass",
+                                    "integrators.base:Grid"])
+def test_a_registration_of_no_integrator_class_is_refused_where_it_is_made(target, tmp_path,
+                                                                            capsys):
+    user = tmp_path / "mine.py"
+    user.write_text(f"import integrators\n\nintegrators.register('mine', {target!r})\n")
+    line = refused(["--load", str(user), *GOOD, "--out", str(tmp_path / "out")], capsys)
+    assert f"{user}:3" in line and "'mine'" in line and repr(target) in line
