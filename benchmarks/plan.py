@@ -202,7 +202,8 @@ ENSEMBLE_GRID = {"n_windows": 64, "n_samples": 3}
 
 def check_ensemble(lanes, seed, where: str, per_chunk=LANES_PER_CHUNK) -> None:
     """An ensemble has 1 to :data:`~problems.ensemble.MAX_LANES` lanes, a seed from 0 to
-    :data:`~problems.ensemble.MAX_SEED` and at least 2 lanes per chunk (a chunk of one lane would compile otherwise than a batch)."""
+    :data:`~problems.ensemble.MAX_SEED` and at least 2 lanes per chunk (a chunk of one lane
+    would compile otherwise than a batch)."""
     if isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= MAX_LANES:
         raise InputError(f"{where}: ensemble = {lanes!r} must be a whole number of lanes "
                          f"from 1 to {MAX_LANES}")

@@ -85,5 +85,6 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                        "line the median."))
     doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
                    "Left: the median lane against wall time per lane, the band from the best "
-                   "lane to the worst (lanes that finished). Right: the fraction of lanes that failed against the "
+                   "lane to the worst (lanes that finished). Right: the fraction of lanes that "
+                   "failed against the "
                    "setting."))

@@ -485,7 +485,8 @@ def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdic
     failed = lanes["status"] == 1
     assert failed.any() and not failed.all()
     assert np.isfinite(lanes["fail_step"][failed]).all()
-    assert np.isnan(lanes["fail_step"][~failed]).all() and np.isnan(lanes["fail_time"][~failed]).all()
+    assert np.isnan(lanes["fail_step"][~failed]).all()
+    assert np.isnan(lanes["fail_time"][~failed]).all()
     np.testing.assert_array_less(lanes["fail_time"][failed], 20.0)
     assert record.metrics.rel_energy_error == np.max(lanes["rel_energy_error"][~failed])
     assert record.metrics.max_energy_error == pytest.approx(
