@@ -245,7 +245,7 @@ def measure(run: PlannedRun, case, traj: Trajectory, timing: Timing) -> Record:
 #: The per-lane metrics of an ensemble, by :func:`benchmarks.metrics.summarize` name, and
 #: their names in the :class:`~benchmarks.records.Spread` columns.
 LANE_METRICS = {"max_pos_residual": "pos", "max_vel_residual": "vel",
-                "rel_energy_error": "energy"}
+                "rel_energy_error": "energy", "final_state_error": "final"}
 
 
 @dataclass
@@ -280,16 +280,21 @@ def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing,
     """The :class:`Part` of the lanes ``first, first + 1, ...`` whose trajectories are
     ``trajs``.
 
-    Lane 0 starts from the case's own initial values, so it alone has the case's
-    reference: its final error and scd are the record's, and the other lanes' are NaN.
+    Lane 0 starts from the case's own initial values and is measured against the case's
+    reference; the others against their own where the case has one at ``t_end``
+    (:func:`problems.ensemble.references`, computed only when one of them finished).
     """
-    bare = case.with_initial(case.q0, case.v0)  # the lanes but 0 have no reference
-    rows = [summarize(case if first + i == 0 else bare, traj) for i, traj in enumerate(trajs)]
     ok = np.array([traj.status == Status.OK for traj in trajs])
+    refs = [None] * len(trajs)
+    if ok[max(0, 1 - first):].any():
+        refs = ensemble.references(case, run.run.seed, first, first + len(trajs),
+                                   run.run.t_end)
+    rows = [summarize(case if first + i == 0 else replace(case, reference=ref), traj)
+            for i, (traj, ref) in enumerate(zip(trajs, refs))]
     table = {"seed": np.arange(first, first + len(trajs), dtype=float),
              "status": (~ok).astype(float)}
     for name in ("max_pos_residual", "max_vel_residual", "rel_energy_error",
-                 "final_state_error"):
+                 "final_state_error", "scd", "reference_floor"):
         table[name] = np.array([row[name] for row in rows], dtype=float)
     table["t_final"] = np.array([traj.t_final for traj in trajs], dtype=float)
     for key in ("fail_step", "fail_time"):
@@ -322,9 +327,10 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize`, the time it
     reached, the step and time of its failure (NaN where it finished) and its work
     counters, in lane order. The record's metrics are the worst lane's (the maxima over the
-    lanes that finished), its work the sum over lanes (the work the timed solves did), its
-    drift series the per-window maxima over the lanes (with their medians beside them as
-    ``median:NAME``), its final state, final error and samples lane 0's, and its
+    lanes that finished; the least scd, and the largest reference floor of the lanes with a
+    final error), its work the sum over lanes (the work the timed solves did), its drift
+    series the per-window maxima over the lanes (with their medians beside them as
+    ``median:NAME``), its final state and samples lane 0's, and its
     :class:`~benchmarks.records.Spread` the quantiles over the lanes that finished. The
     ensemble is ``ok`` when every lane is; otherwise ``failed``, its message counting the
     failed lanes and quoting the first. Its timing is the sum over the parts (what one
@@ -337,12 +343,14 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     ok = table["status"] == 0
     nominal = parts[0].nominal
     windows = _envelope(parts)
-    worst = {name: _given(np.nanmax(table[name][ok])) if ok.any() else None
-             for name in LANE_METRICS}
-    inv = {name: _given(np.nanmax(np.concatenate([part.inv[name] for part in parts])[ok]))
-           if ok.any() else None for name in parts[0].inv}
+    worst = {name: _worst(np.max, table[name][ok]) for name in LANE_METRICS}
+    scored = ok & ~np.isnan(table["final_state_error"])
+    worst.update(scd=_worst(np.min, table["scd"][scored]),
+                 reference_floor=_worst(np.max, table["reference_floor"][scored]))
+    inv = {name: _worst(np.max, np.concatenate([part.inv[name] for part in parts])[ok])
+           for name in parts[0].inv}
     energy = np.concatenate([part.energy for part in parts])
-    max_energy = _given(np.nanmax(energy[ok])) if ok.any() and parts[0].has_energy else None
+    max_energy = _worst(np.max, energy[ok]) if parts[0].has_energy else None
     metrics = replace(nominal.metrics, **worst, max_energy_error=max_energy,
                       invariant_errors=json.dumps(inv) if inv else "",
                       **growth_of(windows, run.run.t0,
@@ -365,6 +373,12 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
                    **{key: int(table[key].sum()) for key in COUNTERS})
     return Record(run.run, ending, _timing(parts), work, metrics, Spread(**spread),
                   windows=windows, samples=nominal.samples, lanes=table)
+
+
+def _worst(reduce, values: np.ndarray):
+    """``reduce`` over the values that are not NaN, ``None`` where there are none."""
+    values = values[~np.isnan(values)]
+    return _given(reduce(values)) if len(values) else None
 
 
 def _timing(parts: list[Part]) -> Timing:

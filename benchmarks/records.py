@@ -40,6 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
+#: The metrics whose quantiles over an ensemble's lanes :class:`Spread` holds, by the
+#: short name of its columns, and the quantiles (in percent).
+SPREAD_METRICS = ("pos", "vel", "energy", "final")
+QUANTILES = (0, 50, 90, 100)
+
 #: Columns of runs.csv, in order (design notes, section 6, then the work counters, what
 #: the run knew about its case and method, its drift classes and the resume key).
 COLUMNS = (
@@ -52,7 +57,7 @@ COLUMNS = (
     "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
     "energy_growth", "reference_floor", "family", "setup_cache",
     "lanes", "seed", "batched", "failed_fraction", *(
-        f"{metric}_q{q}" for metric in ("pos", "vel", "energy") for q in (0, 50, 90, 100)),
+        f"{metric}_q{q}" for metric in SPREAD_METRICS for q in QUANTILES),
     "chunks", "device",
 )
 
@@ -64,7 +69,7 @@ ACCURACY_COLUMNS = (
     "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
     "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
     "pos_growth", "energy_growth", "reference_floor", "failed_fraction",
-    *(f"{metric}_q{q}" for metric in ("pos", "vel", "energy") for q in (0, 50, 90, 100)),
+    *(f"{metric}_q{q}" for metric in SPREAD_METRICS for q in QUANTILES),
 )
 
 #: Columns that hold text; every other column holds a number or nothing.
@@ -291,17 +296,15 @@ class Metrics:
     reference_floor: float | None = None
 
 
-#: The quantiles (in percent) of an ensemble's distributions in ``runs.csv``.
-QUANTILES = (0, 50, 90, 100)
-
 
 @dataclass(frozen=True)
 class Spread:
     """An ensemble's distributions over its lanes: the fraction of lanes that failed and the
     quantiles :data:`QUANTILES` of each lane's ``max |g|`` (``pos_q...``), ``max |G v +
-    g_t|`` (``vel_q...``) and relative energy error (``energy_q...``), over the lanes that
-    finished (all ``None`` for a single run). The per-lane values are the record's
-    :attr:`Record.lanes`."""
+    g_t|`` (``vel_q...``), relative energy error (``energy_q...``) and final error against
+    its own reference (``final_q...``, :func:`problems.ensemble.references`), over the
+    lanes that finished (all ``None`` for a single run). The per-lane values are the
+    record's :attr:`Record.lanes`."""
 
     failed_fraction: float | None = None
     pos_q0: float | None = None
@@ -316,6 +319,10 @@ class Spread:
     energy_q50: float | None = None
     energy_q90: float | None = None
     energy_q100: float | None = None
+    final_q0: float | None = None
+    final_q50: float | None = None
+    final_q90: float | None = None
+    final_q100: float | None = None
 
 
 #: The parts of a record, by field name of :class:`Record`: each column of :data:`COLUMNS`

@@ -1,6 +1,6 @@
 """The embedded results store: SQLite (WAL), appended to by every invocation.
 
-Schema (version 3):
+Schema (version 6):
 
 - ``sessions``: one row per invocation, with provenance (suite, start time, git commit and
   dirty flag, machine, Python and package versions, how wall times were kept honest);
@@ -57,7 +57,7 @@ import pandas as pd
 from benchmarks.files import new_file_mode
 from benchmarks.records import COLUMNS, TEXT_COLUMNS, WHOLE_COLUMNS, Record, Status, provenance
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 STORE_NAME = "driftbench.sqlite"
 #: Statuses of runs that a resumed suite must run again.
 UNFINISHED = (Status.ERROR, Status.TIMEOUT)
@@ -198,9 +198,15 @@ def _v4_to_v5(db: sqlite3.Connection) -> None:
     _add_columns(db, 5)
 
 
+def _v5_to_v6(db: sqlite3.Connection) -> None:
+    """Version 5 -> 6: the quantiles of an ensemble's final errors (``final_q...``), empty
+    for the runs that version 5 held (whose lanes but 0 had no reference)."""
+    _add_columns(db, 6)
+
+
 #: version -> the function that upgrades a database of that version by one.
-MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1_to_v2, 2: _v2_to_v3,
-                                                                3: _v3_to_v4, 4: _v4_to_v5}
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
+    1: _v1_to_v2, 2: _v2_to_v3, 3: _v3_to_v4, 4: _v4_to_v5, 5: _v5_to_v6}
 
 
 def _version(db: sqlite3.Connection) -> int:

@@ -19,15 +19,35 @@ perturbed. The sizes come from the case's :class:`~problems.case.Perturbation`:
 ``sigma_v = sqrt(2 * velocity * energy_scale / tr M(q_0))``, so that the perturbation's
 kinetic energy is about ``velocity`` times the case's energy scale whatever the units
 (``tr M`` is estimated from a few products with ``M``, :data:`TRACE_PROBES`).
+
+References of the lanes
+-----------------------
+Where the case has a reference at ``t`` (lane 0's), each lane gets one of its own
+(:func:`references`): the index-1 ODE ``q' = v``, ``v' = a(t, q, v)`` of the case's
+:class:`~problems.mechanics.Mechanics` (``a`` from
+:meth:`~problems.mechanics.Mechanics.accelerations`), integrated by scipy's DOP853 at
+``rtol = atol =`` :data:`REFERENCE_RTOL` for :data:`REFERENCE_LANES` lanes at a time, its
+end states projected onto ``g = 0`` and ``G v + g_t = 0``. Lane ``i`` is integrated in
+block ``i //`` :data:`REFERENCE_LANES`, always whole, so its reference, like its initial
+state, depends neither on the size of the ensemble nor on its chunks. Its floor
+(:attr:`~problems.case.Reference.floor`) is the lane's max-norm difference, on the scored
+components, to the same integration at :data:`ESTIMATE_RTOL`, which bounds the error of
+that looser run and so, conservatively, of the reference: the way the stored references of
+:mod:`problems.data.generate` are made. This reference shares the model with the
+benchmarked runs and checks their integration, as the ``bricard`` one does.
 """
 
 from __future__ import annotations
 
+import json
+from collections import OrderedDict
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.integrate import solve_ivp
 
-from problems.case import CONSISTENT_TOL, Case, project
+from problems.case import CONSISTENT_TOL, PROJECT_WIDTH, Case, Reference, project
 
 #: Most lanes of one ensemble (the loop's memory is a few kilobytes per lane).
 MAX_LANES = 1 << 20
@@ -35,6 +55,25 @@ MAX_LANES = 1 << 20
 MAX_SEED = (1 << 63) - 1
 #: Probes of the estimate of ``tr M(q0)`` that scales the velocity noise.
 TRACE_PROBES = 16
+#: Lanes whose references are integrated as one ODE (one compiled right-hand side for all
+#: of them: the step sequence is shared and each evaluation costs about as much for 256
+#: lanes as for 16, 24 us against 8 us on the pendulum). Bounded like the projection's
+#: batches (:data:`problems.case.PROJECT_WIDTH`).
+REFERENCE_LANES = PROJECT_WIDTH
+#: Tolerance of the lanes' references (that of the stored references).
+REFERENCE_RTOL = 2.5e-14
+#: Tolerance of the integration that estimates their error. On the pendulum over 100 s lane
+#: 0's reference was 3.3e-9 from the closed form, and its estimate 1.0e-8 at 1e-13 (1.3e-7
+#: at 1e-12, the stored references' looser tolerance).
+ESTIMATE_RTOL = 1e-13
+#: Most right-hand sides one integration of a block of references may evaluate (about
+#: 15 s on the pendulum); the lanes of a block that needs more get no reference. The
+#: pendulum over 100 s takes 6.8e4 at :data:`REFERENCE_RTOL`; the stiff flyball governor
+#: over 10 s 8e5 (16 lanes).
+MAX_REFERENCE_EVALS = 200_000
+#: Blocks of references kept in a process, latest used last.
+KEPT_BLOCKS = 8
+_BLOCKS: OrderedDict = OrderedDict()
 
 
 def draw(case: Case, lanes: int, seed: int = 0, first: int = 0
@@ -94,3 +133,84 @@ def _residuals(mech, q, v, t) -> tuple[np.ndarray, np.ndarray]:
 
     pos, vel = jax.jit(jax.vmap(one))(jnp.asarray(q), jnp.asarray(v))
     return np.asarray(pos), np.asarray(vel)
+
+
+def references(case: Case, seed: int, first: int, stop: int, t: float
+               ) -> list[Reference | None]:
+    """The references at ``t`` of the lanes ``first`` to ``stop - 1`` of the ensembles
+    drawn with ``seed`` (see the module's notes), each ``None`` where the
+    case has no reference at ``t`` or its block's integration failed or ran out of
+    :data:`MAX_REFERENCE_EVALS`.
+
+    A block is computed once per process (the latest :data:`KEPT_BLOCKS` are kept), so the
+    runs of the ensembles of one case and seed, whatever their methods, steps and sizes,
+    share it.
+    """
+    own = case.reference
+    if own is None or not own.available_at(t):
+        return [None] * (stop - first)
+    key = (case.name, json.dumps(case.params, sort_keys=True, default=repr), case.t0,
+           case.q0.tobytes(), case.v0.tobytes(), seed, t)
+    out = []
+    for block in range(first // REFERENCE_LANES, (stop - 1) // REFERENCE_LANES + 1):
+        if (key, block) not in _BLOCKS:
+            _BLOCKS[key, block] = _block(case, seed, block, t)
+            while len(_BLOCKS) > KEPT_BLOCKS:
+                _BLOCKS.popitem(last=False)
+        _BLOCKS.move_to_end((key, block))
+        start = block * REFERENCE_LANES
+        states, floors = _BLOCKS[key, block]
+        for i in range(max(first, start), min(stop, start + REFERENCE_LANES)):
+            y, floor = states[i - start], floors[i - start]
+            out.append(None if not np.isfinite(floor) else Reference(
+                kind="computed",
+                source=(f"lane {i} of the ensemble of seed {seed}: index-1 ODE by scipy "
+                        f"DOP853 at rtol = atol = {REFERENCE_RTOL:g}, projected; floor = "
+                        f"difference to rtol = {ESTIMATE_RTOL:g}"),
+                solution=lambda _t, y=y: (y[:case.q0.size], y[case.q0.size:]),
+                scored=own.scored, times=(t,), floor=float(floor)))
+    return out
+
+
+class _OutOfEvaluations(Exception):
+    pass
+
+
+def _block(case: Case, seed: int, block: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """The projected states ``(q, v)`` at ``t`` (one row per lane) and floors of the lanes
+    of ``block``; NaN where a lane could not be drawn or the integration failed."""
+    first = block * REFERENCE_LANES
+    k, n = REFERENCE_LANES, case.q0.size
+    try:
+        q0, v0 = draw(case, first + k, seed, first)
+    except ValueError:  # a lane of the block that no ensemble here ran failed to project
+        return np.full((k, 2 * n), np.nan), np.full(k, np.nan)
+    mech = case.mech
+
+    @jax.jit
+    def rhs(s, y):
+        q, v = y.reshape(2, k, n)
+        a = jax.vmap(lambda q, v: mech.accelerations(s, q, v)[0])(q, v)
+        return jnp.concatenate([v.ravel(), a.ravel()])
+
+    ends = []
+    for rtol in (REFERENCE_RTOL, ESTIMATE_RTOL):
+        calls = [0]
+
+        def f(s, y):
+            calls[0] += 1
+            if calls[0] > MAX_REFERENCE_EVALS:
+                raise _OutOfEvaluations
+            return np.asarray(rhs(s, y))
+
+        try:
+            sol = solve_ivp(f, (case.t0, t), np.concatenate([q0.ravel(), v0.ravel()]),
+                            method="DOP853", rtol=rtol, atol=rtol)
+        except _OutOfEvaluations:
+            sol = None
+        if sol is None or sol.status != 0:
+            return np.full((k, 2 * n), np.nan), np.full(k, np.nan)
+        q, v = sol.y[:, -1].reshape(2, k, n)
+        ends.append(np.concatenate(project(mech, q, v, t), axis=1))
+    scored = list(case.reference.scored)
+    return ends[0], np.max(np.abs(ends[0] - ends[1])[:, scored], axis=1)

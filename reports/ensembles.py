@@ -3,11 +3,12 @@
 One subsection per problem with ensemble runs (``lanes`` set): a table of each run's
 quantiles over its lanes (:class:`benchmarks.records.Spread`) and failed fraction, the
 per-lane distributions of each metric per method (box plots from the stored per-lane
-tables), and the median lane's accuracy against cost per lane with a band from the best
-lane to the worst beside the failed fraction against the setting. The verdicts name the
-method with the smallest worst-lane (q100) and the smallest median-lane (q50) max rel.
-energy error (max |g| where energy is not conserved), each said to be which, among the
-runs whose every lane finished.
+tables; final errors where the problem has a reference at the run's end), and the median
+lane's accuracy (its final error where there is one) against cost per lane with a band
+from the best lane to the worst beside the failed fraction against the setting. The
+verdicts name the method with the smallest worst-lane (q100) and the smallest
+median-lane (q50) max rel. energy error (max |g| where energy is not conserved), each said
+to be which, among the runs whose every lane finished.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import pandas as pd
 
 from reports import figures
-from reports.analysis import fmt, setting
+from reports.analysis import fmt, reference_floor, setting
 from reports.document import Document, Figure, Para, Table
 
 
@@ -32,7 +33,10 @@ def section(doc: Document, runs: pd.DataFrame, series, colors: dict, draw) -> No
         "constraints, drawn from the run's seed), in one compiled loop where the method "
         "allows ('one loop') or lane by lane. Quantiles are over the lanes that finished; "
         "wall time is the whole ensemble's solve, and work the sum over its lanes. Final "
-        "errors exist for lane 0 alone (no reference is known for the perturbed states)."))
+        "errors, where the problem has a reference at the run's end, are each lane's "
+        "against its own: lane 0's the problem's reference, the others' a tight "
+        "integration of the lane's index-1 ODE (scipy's DOP853, projected onto the "
+        "constraints) whose floor is its difference to a looser one."))
     for problem in sorted(runs["problem"].unique()):
         _problem(doc, problem, runs[runs["problem"] == problem], series, colors, draw)
 
@@ -58,10 +62,21 @@ def _verdicts(runs: pd.DataFrame) -> str:
     return ("Verdicts, among the runs whose every lane finished: " + "; ".join(parts) + ".")
 
 
+def _final(row, q: int) -> str:
+    """A quantile of a run's final errors, 'at floor' where its lanes' references cannot
+    tell it from their own error."""
+    value, floor = float(row[f"final_q{q}"]), reference_floor(row)
+    return "at floor" if 0 < floor and value <= floor else fmt(value)
+
+
 def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, draw) -> None:
     doc.heading(3, f"Ensembles: {problem}")
     runs = runs.sort_values(["integrator", "h", "rtol"])
     doc.add(Para(_verdicts(runs)))
+    final = runs["final_q50"].notna().any()
+    of, scored = ((", of", " and of the final error against each lane's reference "
+                   "('at floor': at or below the largest of the lanes' reference floors, so "
+                   "known only to be at least as accurate)") if final else (" and of", ""))
     rows = []
     for _, r in runs.iterrows():
         rows.append([r["integrator"], setting(r), f"{int(r['lanes'])} (seed {int(r['seed'])})",
@@ -69,11 +84,13 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                      f"{float(r['failed_fraction']):.3g}",
                      *(fmt(r[f"pos_q{q}"]) for q in (50, 90, 100)),
                      *(fmt(r[f"energy_q{q}"]) for q in (50, 90, 100)),
+                     *(_final(r, q) for q in ((50, 90, 100) if final else ())),
                      fmt(r["wall_s"])])
     doc.add(Table(["integrator", "setting", "lanes", "run as", "failed", "max|g| q50", "q90",
-                   "q100", "energy q50", "q90", "q100", "wall s"], rows,
-                  "Quantiles over the lanes that finished of max |g| and of max rel. energy "
-                  "error; 'failed' is the fraction of lanes that did not finish."))
+                   "q100", "energy q50", "q90", "q100",
+                   *(("final q50", "q90", "q100") if final else ()), "wall s"], rows,
+                  f"Quantiles over the lanes that finished of max |g|{of} max rel. energy "
+                  f"error{scored}; 'failed' is the fraction of lanes that did not finish."))
     entries = [{"label": f"{r['integrator']} {setting(r)}", "integrator": r["integrator"],
                 "lanes": series(int(r["run_id"]))["lanes"]} for _, r in runs.iterrows()]
     entries = [e for e in entries if e["lanes"]]
@@ -82,9 +99,10 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                        draw(figures.distributions, entries, colors, problem),
                        "Per-lane distributions of the lanes that finished, one box per run: "
                        "the box spans the middle half of them, the whiskers all of them, the "
-                       "line the median."))
+                       "line the median. Final errors where the problem has a reference, "
+                       "with the largest of the lanes' reference floors dashed."))
     doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
-                   "Left: the median lane against wall time per lane, the band from the best "
-                   "lane to the worst (lanes that finished). Right: the fraction of lanes that "
-                   "failed against the "
-                   "setting."))
+                   "Left: the median lane's final error (where there is none, its max "
+                   "rel. energy error, or max |g|) against wall time per lane, the band "
+                   "from the best lane to the worst (lanes that finished). Right: the "
+                   "fraction of lanes that failed against the setting."))

@@ -488,35 +488,54 @@ def scaling(panels: list[tuple[str, list[dict]]], colors: dict) -> str:
 def distributions(entries: list[dict], colors: dict, title: str) -> str:
     """Per-lane distributions of an ensemble's metrics: one box per run (``entries``: dicts
     with ``label``, ``integrator`` and ``lanes``, the per-lane table), one panel per metric
-    (max |g|, max |G v + g_t|, max rel. energy error), log scale, over the lanes that
+    (max |g|, max |G v + g_t|, max rel. energy error, and the final error where some lane
+    has one, with the largest reference floor dashed), log scale, over the lanes that
     finished. Boxes span the quartiles, whiskers the extremes (every such lane is inside
-    them), a line marks the median."""
+    them), a line marks the median; each run keeps its row in every panel."""
     panels = [("max_pos_residual", "max |g| per lane"),
               ("max_vel_residual", "max |G v + g_t| per lane"),
               ("rel_energy_error", "max rel. energy error per lane")]
+    finals = [np.asarray(e["lanes"].get("final_state_error", []), dtype=float)
+              for e in entries]
+    if any(np.isfinite(final).any() for final in finals):
+        panels.append(("final_state_error", "final error per lane"))
+    rows = range(1, len(entries) + 1)
     with rc_context(RC):
-        fig, axes = _figure(1, len(panels), 4.0 * len(panels), 3.0 + 0.12 * len(entries))
+        fig, axes = _figure(1, len(panels), 12.0, 3.0 + 0.12 * len(entries))
         for ax, (column, label) in zip(axes[0], panels):
-            data, names, shades = [], [], []
-            for entry in entries:
+            data, places, shades = [], [], []
+            for row, entry in zip(rows, entries):
                 ok = np.asarray(entry["lanes"]["status"]) == 0
                 values = _floor(np.asarray(entry["lanes"][column])[ok])
                 values = values[np.isfinite(values)]
                 if len(values):
                     data.append(values)
-                    names.append(entry["label"])
+                    places.append(row)
                     shades.append(colors[entry["integrator"]][0])
+            ax.set_yticks(rows, [e["label"] for e in entries] if ax is axes[0, 0]
+                          else [""] * len(entries))
+            ax.set_ylim(0.5, len(entries) + 0.5)
+            ax.set_xlabel(label)
             if not data:
                 _empty(ax, f"{label}: not measured")
                 continue
-            boxes = ax.boxplot(data, orientation="horizontal", whis=(0, 100), widths=0.6,
-                               patch_artist=True, medianprops={"color": "black"})
+            boxes = ax.boxplot(data, positions=places, orientation="horizontal",
+                               whis=(0, 100), widths=0.6, patch_artist=True,
+                               manage_ticks=False, medianprops={"color": "black"})
             for patch, shade in zip(boxes["boxes"], shades):
                 patch.set_facecolor(shade)
                 patch.set_alpha(0.7)
             ax.set_xscale("log")
-            ax.set_yticks(range(1, len(names) + 1), names if ax is axes[0, 0] else [""] * len(names))
-            ax.set_xlabel(label)
+            if column == "final_state_error":
+                floors = [np.asarray(e["lanes"].get("reference_floor", []), dtype=float)
+                          for e in entries]
+                floor = max((np.nanmax(f) for f in floors if np.isfinite(f).any()),
+                            default=0.0)
+                if floor > 0:
+                    ax.axvline(floor, color="0.3", ls="--", lw=0.8)
+                    ax.annotate(f"reference floor {fmt(floor)}", (floor, 1.0),
+                                xycoords=("data", "axes fraction"), fontsize=7,
+                                ha="left", va="bottom", color="0.3")
         side = 0.07 * max((len(e["label"]) for e in entries), default=0)
         width, height = fig.get_size_inches()
         fig.set_size_inches(width + side, height)
@@ -526,14 +545,23 @@ def distributions(entries: list[dict], colors: dict, title: str) -> str:
         return _svg(fig)
 
 
+#: What an ensemble's work-precision panel shows, the first the runs have: the final error,
+#: else the max rel. energy error, else max |g| (short name of the :class:`Spread` columns
+#: and the axis label).
+ENSEMBLE_PRECISION = (("final", "final error"), ("energy", "max rel. energy error"),
+                      ("pos", "max |g|"))
+
+
 def ensemble_cost(runs, colors: dict, title: str) -> str:
-    """Two panels per ensemble sweep: the median lane's max rel. energy error (or max |g|
-    where energy is not conserved) against wall time per lane, with a band from the best
-    lane to the worst; and the fraction of lanes that failed against ``h`` (or rtol)."""
+    """Two panels per ensemble sweep: the median lane's final error (or max rel. energy
+    error, or max |g|: :data:`ENSEMBLE_PRECISION`) against wall time per lane, with a band
+    from the best lane to the worst; and the fraction of lanes that failed against ``h``
+    (or rtol)."""
     with rc_context(RC):
         fig, axes = _figure(1, 2, 8.0, 3.0)
         accuracy, failures = axes[0]
-        metric = "energy" if runs["energy_q50"].notna().any() else "pos"
+        metric, name = next(((m, n) for m, n in ENSEMBLE_PRECISION
+                             if runs[f"{m}_q50"].notna().any()), ENSEMBLE_PRECISION[-1])
         drawn = False
         for key, grp in runs.groupby("integrator"):
             color, marker = colors[key]
@@ -555,8 +583,7 @@ def ensemble_cost(runs, colors: dict, title: str) -> str:
             drawn = True
         if drawn:
             accuracy.set_xlabel("wall time per lane [s]")
-            accuracy.set_ylabel("median lane: " + ("max rel. energy error" if metric == "energy"
-                                                   else "max |g|") + "\n(band: best to worst)")
+            accuracy.set_ylabel(f"median lane: {name}\n(band: best to worst)")
         else:
             _empty(accuracy, "no lane finished")
         failures.set_xlabel("h (or rtol)")

@@ -19,6 +19,7 @@ from benchmarks.plan import ENSEMBLE_GRID, GPU_MIN_LANES, jax_device, lane_range
 from benchmarks.records import ACCURACY_COLUMNS, RunSpec
 from benchmarks.store import load_lanes, load_runs
 from integrators.base import Grid
+from problems import ensemble
 from problems.ensemble import draw
 
 
@@ -237,9 +238,11 @@ def test_command_line_records_quantiles_lanes_and_report(tmp_path):
     stored = load_runs(out / "driftbench.sqlite")
     lanes = load_lanes(out / "driftbench.sqlite", int(stored["run_id"].iloc[0]))
     assert list(lanes["seed"]) == list(range(6)) and (lanes["status"] == 0).all()
-    assert lanes["final_state_error"].iloc[1:].isna().all()  # no reference off lane 0
+    assert np.isfinite(lanes["final_state_error"]).all()  # each lane against its own
+    assert (runs["final_q50"] <= runs["final_q100"]).all()
     html = (out / "report.html").read_text()
     assert "Ensembles: pendulum" in html and "ensemble-distributions" in html
+    assert "final q50" in html and "final error per lane" in html
 
 
 @pytest.mark.parametrize("argv, what", [(["--ensemble", "0"], "--ensemble 0"),
@@ -499,3 +502,76 @@ def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdic
     verdict = _verdicts(runs)
     assert "rattle" not in verdict and verdict.count("genalpha") == 2
     assert _verdicts(runs.iloc[:1]) == "Verdicts: no run finished every lane."
+
+
+def _pendulum_by_angle(q0, v0, t, L=1.0, gravity=9.81):
+    """The pendulum's position at ``t`` from ``(q0, v0)`` by its one angle,
+    ``theta'' = -(g / L) sin(theta)``, and scipy's Radau: neither the coordinates nor the
+    method of the lanes' references."""
+    from scipy.integrate import solve_ivp
+
+    theta = np.arctan2(q0[0], -q0[1])
+    omega = (q0[0] * v0[1] - q0[1] * v0[0]) / L**2
+    sol = solve_ivp(lambda s, y: [y[1], -gravity / L * np.sin(y[0])], (0.0, t),
+                    [theta, omega], method="Radau", rtol=1e-12, atol=1e-12)
+    theta, omega = sol.y[:, -1]
+    return np.array([L * np.sin(theta), -L * np.cos(theta)])
+
+
+def test_lane_references_agree_with_the_closed_form_and_an_independent_solve():
+    """Lane 0's computed reference is within its floor of the closed form; the perturbed
+    lanes' agree with the angle ODE solved by another method; the floors are the size a
+    tight integration over 5 s has; a lane's reference does not depend on which lanes are
+    asked for, nor on the block's being computed again."""
+    case = problems.make("pendulum").with_t_end(5.0)
+    refs = ensemble.references(case, 1, 0, 6, 5.0)
+    q0s, v0s = draw(case, 6, seed=1)
+    exact, _ = case.reference.solution(5.0)
+    assert np.max(np.abs(refs[0].solution(5.0)[0] - exact)) <= refs[0].floor
+    for i in range(1, 6):
+        q, _ = refs[i].solution(5.0)
+        assert refs[i].scored == (0, 1) and refs[i].times == (5.0,)
+        assert 0 < refs[i].floor < 1e-10
+        np.testing.assert_allclose(q, _pendulum_by_angle(q0s[i], v0s[i], 5.0), rtol=0,
+                                   atol=1e-9)
+    ensemble._BLOCKS.clear()
+    part = ensemble.references(case, 1, 2, 4, 5.0)
+    assert [(r.floor, *r.solution(5.0)[0]) for r in part] == \
+        [(r.floor, *r.solution(5.0)[0]) for r in refs[2:4]]
+    # None where the case has no reference at t (the chain's are at t = 1 and 5).
+    assert ensemble.references(problems.make("chain"), 1, 0, 2, 2.0) == [None, None]
+
+
+def test_ensemble_final_errors_are_each_lanes_against_its_reference(monkeypatch):
+    """The per-lane table holds each lane's final error against its own reference, with
+    its floor; the record's final error is the worst lane's and its floor the largest; a
+    block of references that runs out of evaluations leaves its lanes without a final
+    error and the run ok."""
+    spec = RunSpec("pendulum", "lobatto3ab3", h=0.1, t_end=5.0, lanes=6, seed=1)
+    record = execute(plan([spec], "test")[0], repeats=1)
+    lanes = record.lanes
+    assert record.ending.status == "ok" and np.isfinite(lanes["final_state_error"]).all()
+    refs = ensemble.references(problems.make("pendulum").with_t_end(5.0), 1, 0, 6, 5.0)
+    np.testing.assert_array_equal(lanes["reference_floor"][1:], [r.floor for r in refs[1:]])
+    assert lanes["reference_floor"][0] == 0.0  # lane 0: the closed form
+    assert record.metrics.final_state_error == np.max(lanes["final_state_error"])
+    assert record.metrics.scd == np.min(lanes["scd"])
+    assert record.metrics.reference_floor == np.max(lanes["reference_floor"])
+    assert record.spread.final_q0 == np.min(lanes["final_state_error"])
+    assert record.spread.final_q100 == np.max(lanes["final_state_error"])
+    monkeypatch.setattr(ensemble, "MAX_REFERENCE_EVALS", 10)
+    monkeypatch.setattr(ensemble, "_BLOCKS", type(ensemble._BLOCKS)())
+    spent = execute(plan([spec], "test")[0], repeats=1)
+    assert spent.ending.status == "ok"
+    assert np.isnan(spent.lanes["final_state_error"][1:]).all()
+    assert spent.lanes["final_state_error"][0] == lanes["final_state_error"][0]
+
+
+def test_final_error_quantiles_at_the_reference_floor_say_so():
+    from reports.ensembles import _final
+
+    row = pd.Series({"final_q50": 2e-9, "final_q100": 3e-7, "reference_floor": 1e-8})
+    assert (_final(row, 50), _final(row, 100)) == ("at floor", "3e-07")
+    exact = pd.Series({"final_q50": 0.0, "reference_floor": 0.0})  # a closed form
+    assert _final(exact, 50) == "0"
+    assert _final(pd.Series({"final_q50": np.nan, "reference_floor": np.nan}), 50) == ""
