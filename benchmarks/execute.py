@@ -63,6 +63,7 @@ def forget_cases() -> None:
     """Drop the cases this process keeps (a problem's definition was replaced)."""
     _case.cache_clear()
     _lanes.cache_clear()
+    ensemble.forget()
 
 
 #: Autorange timing (in the manner of :func:`timeit.Timer.autorange`): a run's solve is
@@ -259,7 +260,8 @@ class Part:
     past a lane's last window), and ``t`` the window ends of its longest lane; ``failure``
     its first failed lane (index and trajectory) or ``None``; ``nominal`` the record of
     lane 0 (in the part that holds it, else ``None``); ``has_energy`` whether the case
-    conserves energy; ``timing`` the chunk's and ``device`` the platform it ran on.
+    conserves energy; ``timing`` the chunk's and ``device`` the platform it ran on;
+    ``notes`` why some of its lanes have no reference (one per block of them).
     """
 
     first: int
@@ -273,6 +275,7 @@ class Part:
     has_energy: bool
     timing: Timing
     device: str
+    notes: tuple[str, ...] = ()
 
 
 def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing, first: int,
@@ -282,13 +285,16 @@ def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing,
 
     Lane 0 starts from the case's own initial values and is measured against the case's
     reference; the others against their own where the case has one at ``t_end``
-    (:func:`problems.ensemble.references`, computed only when one of them finished).
+    (:func:`problems.ensemble.references`, computed on the CPU whatever device ran the
+    lanes, and only when one of them finished; where a block of them could not be made,
+    ``notes`` say why).
     """
     ok = np.array([traj.status == Status.OK for traj in trajs])
-    refs = [None] * len(trajs)
+    refs, notes = [None] * len(trajs), ()
     if ok[max(0, 1 - first):].any():
-        refs = ensemble.references(case, run.run.seed, first, first + len(trajs),
-                                   run.run.t_end)
+        with jax.default_device(jax.devices("cpu")[0]):
+            refs, notes = ensemble.references(case, run.run.seed, first, first + len(trajs),
+                                             run.run.t_end)
     rows = [summarize(case if first + i == 0 else replace(case, reference=ref), traj)
             for i, (traj, ref) in enumerate(zip(trajs, refs))]
     table = {"seed": np.arange(first, first + len(trajs), dtype=float),
@@ -317,7 +323,7 @@ def measure_part(run: PlannedRun, case, trajs: list[Trajectory], timing: Timing,
                 inv, stacks, np.asarray(longest.windows["t"], dtype=float),
                 (first + int(failed[0]), trajs[failed[0]]) if len(failed) else None,
                 measure(run, case, trajs[0], timing) if first == 0 else None,
-                bool(case.mech.has_energy), timing, device)
+                bool(case.mech.has_energy), timing, device, notes)
 
 
 def merge(run: PlannedRun, parts: list[Part]) -> Record:
@@ -327,13 +333,15 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     as 0 (ok) or 1, the metrics of :func:`benchmarks.metrics.summarize`, the time it
     reached, the step and time of its failure (NaN where it finished) and its work
     counters, in lane order. The record's metrics are the worst lane's (the maxima over the
-    lanes that finished; the least scd, and the largest reference floor of the lanes with a
-    final error), its work the sum over lanes (the work the timed solves did), its drift
-    series the per-window maxima over the lanes (with their medians beside them as
-    ``median:NAME``), its final state and samples lane 0's, and its
-    :class:`~benchmarks.records.Spread` the quantiles over the lanes that finished. The
-    ensemble is ``ok`` when every lane is; otherwise ``failed``, its message counting the
-    failed lanes and quoting the first. Its timing is the sum over the parts (what one
+    lanes that finished; the least scd and the largest reference floor), its work the sum
+    over lanes (the work the timed solves did), its drift series the per-window maxima over
+    the lanes (with their medians beside them as ``median:NAME``), its final state and
+    samples lane 0's, and its :class:`~benchmarks.records.Spread` the quantiles over the
+    lanes that finished. Final errors are summed up only where every lane that finished
+    has one: where a block of references could not be made, none (its lanes alone would
+    make a partial distribution), and the message says why. The ensemble is ``ok`` when
+    every lane is; otherwise ``failed``, its message counting the failed lanes and quoting
+    the first. Its timing is the sum over the parts (what one
     core running the chunks one after another would take; per part the median of its
     timed solves for ``wall_s``); ``device`` names the platforms they ran on.
     """
@@ -343,8 +351,13 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     ok = table["status"] == 0
     nominal = parts[0].nominal
     windows = _envelope(parts)
-    worst = {name: _worst(np.max, table[name][ok]) for name in LANE_METRICS}
-    scored = ok & ~np.isnan(table["final_state_error"])
+    # Which lanes each summary is over: final errors only where every lane that finished
+    # has one.
+    over = {name: ok for name in LANE_METRICS}
+    if np.isnan(table["final_state_error"][ok]).any():
+        over["final_state_error"] = np.zeros_like(ok)
+    worst = {name: _worst(np.max, table[name][over[name]]) for name in LANE_METRICS}
+    scored = over["final_state_error"]
     worst.update(scd=_worst(np.min, table["scd"][scored]),
                  reference_floor=_worst(np.max, table["reference_floor"][scored]))
     inv = {name: _worst(np.max, np.concatenate([part.inv[name] for part in parts])[ok])
@@ -357,7 +370,7 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
                                   run.run.energy_scale if parts[0].has_energy else None))
     spread = {"failed_fraction": float(np.mean(~ok))}
     for name, short in LANE_METRICS.items():
-        values = table[name][ok]
+        values = table[name][over[name]]
         for q in QUANTILES:
             spread[f"{short}_q{q}"] = (_given(np.nanpercentile(values, q))
                                        if len(values) and not np.isnan(values).all() else None)
@@ -369,6 +382,10 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
                          fail_time=_given(first.fail_time),
                          message=f"{int((~ok).sum())} of {len(ok)} lanes failed; the first, "
                                  f"lane {lane}: {first.message}")
+    notes = list(dict.fromkeys(note for part in parts for note in part.notes))
+    if notes:
+        missing = "no final errors: no reference for " + "; for ".join(notes)
+        ending = replace(ending, message="; ".join(filter(None, [ending.message, missing])))
     work = replace(nominal.work, device="+".join(sorted({part.device for part in parts})),
                    **{key: int(table[key].sum()) for key in COUNTERS})
     return Record(run.run, ending, _timing(parts), work, metrics, Spread(**spread),

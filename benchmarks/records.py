@@ -296,7 +296,6 @@ class Metrics:
     reference_floor: float | None = None
 
 
-
 @dataclass(frozen=True)
 class Spread:
     """An ensemble's distributions over its lanes: the fraction of lanes that failed and the

@@ -31,9 +31,9 @@ end states projected onto ``g = 0`` and ``G v + g_t = 0``. Lane ``i`` is integra
 block ``i //`` :data:`REFERENCE_LANES`, always whole, so its reference, like its initial
 state, depends neither on the size of the ensemble nor on its chunks. Its floor
 (:attr:`~problems.case.Reference.floor`) is the lane's max-norm difference, on the scored
-components, to the same integration at :data:`ESTIMATE_RTOL`, which bounds the error of
-that looser run and so, conservatively, of the reference: the way the stored references of
-:mod:`problems.data.generate` are made. This reference shares the model with the
+components, to the same integration at :data:`ESTIMATE_RTOL`, which estimates the error
+of that looser run and so, conservatively, of the reference: the way the stored references
+of :mod:`problems.data.generate` are made. This reference shares the model with the
 benchmarked runs and checks their integration, as the ``bricard`` one does.
 """
 
@@ -56,9 +56,10 @@ MAX_SEED = (1 << 63) - 1
 #: Probes of the estimate of ``tr M(q0)`` that scales the velocity noise.
 TRACE_PROBES = 16
 #: Lanes whose references are integrated as one ODE (one compiled right-hand side for all
-#: of them: the step sequence is shared and each evaluation costs about as much for 256
-#: lanes as for 16, 24 us against 8 us on the pendulum). Bounded like the projection's
-#: batches (:data:`problems.case.PROJECT_WIDTH`).
+#: of them, with one step sequence: on the pendulum an evaluation took 24 us for 256 lanes
+#: and 8 us for 16, a fifth of the cost per lane). Bounded like the projection's batches
+#: (:data:`problems.case.PROJECT_WIDTH`). DOP853 controls one error norm over the whole
+#: block, so what tells a lane's accuracy is its own floor, measured lane by lane.
 REFERENCE_LANES = PROJECT_WIDTH
 #: Tolerance of the lanes' references (that of the stored references).
 REFERENCE_RTOL = 2.5e-14
@@ -71,8 +72,9 @@ ESTIMATE_RTOL = 1e-13
 #: pendulum over 100 s takes 6.8e4 at :data:`REFERENCE_RTOL`; the stiff flyball governor
 #: over 10 s 8e5 (16 lanes).
 MAX_REFERENCE_EVALS = 200_000
-#: Blocks of references kept in a process, latest used last.
-KEPT_BLOCKS = 8
+#: Blocks of references kept in a process, least recently used first out: 16384 lanes, a
+#: few MB for a small system.
+KEPT_BLOCKS = 64
 _BLOCKS: OrderedDict = OrderedDict()
 
 
@@ -136,22 +138,23 @@ def _residuals(mech, q, v, t) -> tuple[np.ndarray, np.ndarray]:
 
 
 def references(case: Case, seed: int, first: int, stop: int, t: float
-               ) -> list[Reference | None]:
+               ) -> tuple[list[Reference | None], tuple[str, ...]]:
     """The references at ``t`` of the lanes ``first`` to ``stop - 1`` of the ensembles
-    drawn with ``seed`` (see the module's notes), each ``None`` where the
-    case has no reference at ``t`` or its block's integration failed or ran out of
-    :data:`MAX_REFERENCE_EVALS`.
+    drawn with ``seed`` (see the module's notes), each ``None`` where the case has no
+    reference at ``t`` or its block got none, and why each block that got none did not
+    (empty where every block got its references).
 
     A block is computed once per process (the latest :data:`KEPT_BLOCKS` are kept), so the
     runs of the ensembles of one case and seed, whatever their methods, steps and sizes,
-    share it.
+    share it; :func:`forget` drops them.
     """
     own = case.reference
     if own is None or not own.available_at(t):
-        return [None] * (stop - first)
+        return [None] * (stop - first), ()
     key = (case.name, json.dumps(case.params, sort_keys=True, default=repr), case.t0,
-           case.q0.tobytes(), case.v0.tobytes(), seed, t)
-    out = []
+           case.q0.tobytes(), case.v0.tobytes(), case.energy_scale, case.perturbation,
+           seed, t)
+    out, why = [], []
     for block in range(first // REFERENCE_LANES, (stop - 1) // REFERENCE_LANES + 1):
         if (key, block) not in _BLOCKS:
             _BLOCKS[key, block] = _block(case, seed, block, t)
@@ -159,32 +162,37 @@ def references(case: Case, seed: int, first: int, stop: int, t: float
                 _BLOCKS.popitem(last=False)
         _BLOCKS.move_to_end((key, block))
         start = block * REFERENCE_LANES
-        states, floors = _BLOCKS[key, block]
+        states, floors, failure = _BLOCKS[key, block]
+        if failure:
+            why.append(f"lanes {start} to {start + REFERENCE_LANES - 1}: {failure}")
         for i in range(max(first, start), min(stop, start + REFERENCE_LANES)):
             y, floor = states[i - start], floors[i - start]
-            out.append(None if not np.isfinite(floor) else Reference(
+            out.append(None if failure else Reference(
                 kind="computed",
                 source=(f"lane {i} of the ensemble of seed {seed}: index-1 ODE by scipy "
                         f"DOP853 at rtol = atol = {REFERENCE_RTOL:g}, projected; floor = "
                         f"difference to rtol = {ESTIMATE_RTOL:g}"),
                 solution=lambda _t, y=y: (y[:case.q0.size], y[case.q0.size:]),
                 scored=own.scored, times=(t,), floor=float(floor)))
-    return out
+    return out, tuple(why)
+
+
+def forget() -> None:
+    """Drop the references this process keeps (a problem's definition was replaced)."""
+    _BLOCKS.clear()
 
 
 class _OutOfEvaluations(Exception):
     pass
 
 
-def _block(case: Case, seed: int, block: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+def _block(case: Case, seed: int, block: int, t: float
+           ) -> tuple[np.ndarray, np.ndarray, str]:
     """The projected states ``(q, v)`` at ``t`` (one row per lane) and floors of the lanes
-    of ``block``; NaN where a lane could not be drawn or the integration failed."""
+    of ``block``, and ``""``; or, where a lane of the block could not be drawn, the
+    integration failed or raised, or a state is not finite, NaN and why."""
     first = block * REFERENCE_LANES
     k, n = REFERENCE_LANES, case.q0.size
-    try:
-        q0, v0 = draw(case, first + k, seed, first)
-    except ValueError:  # a lane of the block that no ensemble here ran failed to project
-        return np.full((k, 2 * n), np.nan), np.full(k, np.nan)
     mech = case.mech
 
     @jax.jit
@@ -193,24 +201,35 @@ def _block(case: Case, seed: int, block: int, t: float) -> tuple[np.ndarray, np.
         a = jax.vmap(lambda q, v: mech.accelerations(s, q, v)[0])(q, v)
         return jnp.concatenate([v.ravel(), a.ravel()])
 
-    ends = []
-    for rtol in (REFERENCE_RTOL, ESTIMATE_RTOL):
-        calls = [0]
+    def failed(why: str):
+        return np.full((k, 2 * n), np.nan), np.full(k, np.nan), why
 
-        def f(s, y):
-            calls[0] += 1
-            if calls[0] > MAX_REFERENCE_EVALS:
-                raise _OutOfEvaluations
-            return np.asarray(rhs(s, y))
+    try:
+        q0, v0 = draw(case, first + k, seed, first)
+        ends = []
+        for rtol in (REFERENCE_RTOL, ESTIMATE_RTOL):
+            calls = [0]
 
-        try:
+            def f(s, y):
+                calls[0] += 1
+                if calls[0] > MAX_REFERENCE_EVALS:
+                    raise _OutOfEvaluations
+                return np.asarray(rhs(s, y))
+
             sol = solve_ivp(f, (case.t0, t), np.concatenate([q0.ravel(), v0.ravel()]),
                             method="DOP853", rtol=rtol, atol=rtol)
-        except _OutOfEvaluations:
-            sol = None
-        if sol is None or sol.status != 0:
-            return np.full((k, 2 * n), np.nan), np.full(k, np.nan)
-        q, v = sol.y[:, -1].reshape(2, k, n)
-        ends.append(np.concatenate(project(mech, q, v, t), axis=1))
-    scored = list(case.reference.scored)
-    return ends[0], np.max(np.abs(ends[0] - ends[1])[:, scored], axis=1)
+            if sol.status != 0:
+                return failed(f"DOP853 at rtol {rtol:g} stopped at t = {sol.t[-1]:.6g}: "
+                              f"{sol.message}")
+            q, v = sol.y[:, -1].reshape(2, k, n)
+            ends.append(np.concatenate(project(mech, q, v, t), axis=1))
+    except _OutOfEvaluations:
+        return failed(f"DOP853 needed more than {MAX_REFERENCE_EVALS:,} right-hand sides "
+                      f"(problems.ensemble.MAX_REFERENCE_EVALS)")
+    except Exception as exc:  # the reference is not the run: its failure is a note
+        what = str(exc).strip().splitlines()
+        return failed(f"{type(exc).__name__}" + (f": {what[0]}" if what else ""))
+    floors = np.max(np.abs(ends[0] - ends[1])[:, list(case.reference.scored)], axis=1)
+    if not (np.isfinite(floors).all() and np.isfinite(ends[0]).all()):
+        return failed("a lane's reference is not finite")
+    return ends[0], floors, ""

@@ -65,7 +65,7 @@ def _verdicts(runs: pd.DataFrame) -> str:
 def _final(row, q: int) -> str:
     """A quantile of a run's final errors, 'at floor' where its lanes' references cannot
     tell it from their own error."""
-    value, floor = float(row[f"final_q{q}"]), reference_floor(row)
+    value, floor = pd.to_numeric(row[f"final_q{q}"], errors="coerce"), reference_floor(row)
     return "at floor" if 0 < floor and value <= floor else fmt(value)
 
 
@@ -102,7 +102,7 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                        "line the median. Final errors where the problem has a reference, "
                        "with the largest of the lanes' reference floors dashed."))
     doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
-                   "Left: the median lane's final error (where there is none, its max "
+                   "Left: the median lane's final error (where a run has none, its max "
                    "rel. energy error, or max |g|) against wall time per lane, the band "
                    "from the best lane to the worst (lanes that finished). Right: the "
                    "fraction of lanes that failed against the setting."))

@@ -545,9 +545,9 @@ def distributions(entries: list[dict], colors: dict, title: str) -> str:
         return _svg(fig)
 
 
-#: What an ensemble's work-precision panel shows, the first the runs have: the final error,
-#: else the max rel. energy error, else max |g| (short name of the :class:`Spread` columns
-#: and the axis label).
+#: What an ensemble's work-precision panel shows, the first that every run with a lane that
+#: finished has: the final error, else the max rel. energy error, else max |g| (short name
+#: of the :class:`Spread` columns and the axis label).
 ENSEMBLE_PRECISION = (("final", "final error"), ("energy", "max rel. energy error"),
                       ("pos", "max |g|"))
 
@@ -560,8 +560,10 @@ def ensemble_cost(runs, colors: dict, title: str) -> str:
     with rc_context(RC):
         fig, axes = _figure(1, 2, 8.0, 3.0)
         accuracy, failures = axes[0]
+        finished = runs["pos_q50"].notna()
         metric, name = next(((m, n) for m, n in ENSEMBLE_PRECISION
-                             if runs[f"{m}_q50"].notna().any()), ENSEMBLE_PRECISION[-1])
+                             if runs.loc[finished, f"{m}_q50"].notna().all()),
+                            ENSEMBLE_PRECISION[-1])
         drawn = False
         for key, grp in runs.groupby("integrator"):
             color, marker = colors[key]

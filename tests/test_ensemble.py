@@ -524,7 +524,8 @@ def test_lane_references_agree_with_the_closed_form_and_an_independent_solve():
     tight integration over 5 s has; a lane's reference does not depend on which lanes are
     asked for, nor on the block's being computed again."""
     case = problems.make("pendulum").with_t_end(5.0)
-    refs = ensemble.references(case, 1, 0, 6, 5.0)
+    refs, notes = ensemble.references(case, 1, 0, 6, 5.0)
+    assert notes == ()
     q0s, v0s = draw(case, 6, seed=1)
     exact, _ = case.reference.solution(5.0)
     assert np.max(np.abs(refs[0].solution(5.0)[0] - exact)) <= refs[0].floor
@@ -535,23 +536,23 @@ def test_lane_references_agree_with_the_closed_form_and_an_independent_solve():
         np.testing.assert_allclose(q, _pendulum_by_angle(q0s[i], v0s[i], 5.0), rtol=0,
                                    atol=1e-9)
     ensemble._BLOCKS.clear()
-    part = ensemble.references(case, 1, 2, 4, 5.0)
+    part, _ = ensemble.references(case, 1, 2, 4, 5.0)
     assert [(r.floor, *r.solution(5.0)[0]) for r in part] == \
         [(r.floor, *r.solution(5.0)[0]) for r in refs[2:4]]
     # None where the case has no reference at t (the chain's are at t = 1 and 5).
-    assert ensemble.references(problems.make("chain"), 1, 0, 2, 2.0) == [None, None]
+    assert ensemble.references(problems.make("chain"), 1, 0, 2, 2.0) == ([None, None], ())
 
 
 def test_ensemble_final_errors_are_each_lanes_against_its_reference(monkeypatch):
     """The per-lane table holds each lane's final error against its own reference, with
     its floor; the record's final error is the worst lane's and its floor the largest; a
     block of references that runs out of evaluations leaves its lanes without a final
-    error and the run ok."""
+    error, no summary of final errors and the run ok, its message saying why."""
     spec = RunSpec("pendulum", "lobatto3ab3", h=0.1, t_end=5.0, lanes=6, seed=1)
     record = execute(plan([spec], "test")[0], repeats=1)
     lanes = record.lanes
     assert record.ending.status == "ok" and np.isfinite(lanes["final_state_error"]).all()
-    refs = ensemble.references(problems.make("pendulum").with_t_end(5.0), 1, 0, 6, 5.0)
+    refs, _ = ensemble.references(problems.make("pendulum").with_t_end(5.0), 1, 0, 6, 5.0)
     np.testing.assert_array_equal(lanes["reference_floor"][1:], [r.floor for r in refs[1:]])
     assert lanes["reference_floor"][0] == 0.0  # lane 0: the closed form
     assert record.metrics.final_state_error == np.max(lanes["final_state_error"])
@@ -563,8 +564,14 @@ def test_ensemble_final_errors_are_each_lanes_against_its_reference(monkeypatch)
     monkeypatch.setattr(ensemble, "_BLOCKS", type(ensemble._BLOCKS)())
     spent = execute(plan([spec], "test")[0], repeats=1)
     assert spent.ending.status == "ok"
+    assert spent.ending.message == (
+        "no final errors: no reference for lanes 0 to 255: DOP853 needed more than 10 "
+        "right-hand sides (problems.ensemble.MAX_REFERENCE_EVALS)")
     assert np.isnan(spent.lanes["final_state_error"][1:]).all()
     assert spent.lanes["final_state_error"][0] == lanes["final_state_error"][0]
+    # Lane 0 alone is no distribution: no summary of final errors at all.
+    assert spent.metrics.final_state_error is None and spent.spread.final_q50 is None
+    assert spent.metrics.reference_floor is None and spent.metrics.scd is None
 
 
 def test_final_error_quantiles_at_the_reference_floor_say_so():
