@@ -48,6 +48,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from problems.case import CONSISTENT_TOL, PROJECT_WIDTH, Case, Reference, project
+from problems.data.generate import TIGHT_RTOL
 
 #: Most lanes of one ensemble (the loop's memory is a few kilobytes per lane).
 MAX_LANES = 1 << 20
@@ -61,8 +62,8 @@ TRACE_PROBES = 16
 #: (:data:`problems.case.PROJECT_WIDTH`). DOP853 controls one error norm over the whole
 #: block, so what tells a lane's accuracy is its own floor, measured lane by lane.
 REFERENCE_LANES = PROJECT_WIDTH
-#: Tolerance of the lanes' references (that of the stored references).
-REFERENCE_RTOL = 2.5e-14
+#: Tolerance of the lanes' references: that of the stored references.
+REFERENCE_RTOL = TIGHT_RTOL
 #: Tolerance of the integration that estimates their error. On the pendulum over 100 s lane
 #: 0's reference was 3.3e-9 from the closed form, and its estimate 1.0e-8 at 1e-13 (1.3e-7
 #: at 1e-12, the stored references' looser tolerance).
