@@ -12,7 +12,10 @@ compared in its own direction with its own :class:`~benchmarks.gate.Tolerance`: 
 better for constraint residuals, energy and invariant errors and final errors; higher is
 better for ``scd`` (significant correct digits). A metric regresses when it is worse
 than the baseline by more than its relative factor *and* lies above its absolute floor
-(values at or below the floor are round-off, which may differ between machines). The
+(values at or below the floor are round-off, which may differ between machines); a final
+error's floor is at least the larger of the two runs' reference floors (below it the
+change is the reference's), and where both final errors lie below that, their ``scd`` is
+not compared either. The
 drift classes of ``|g|`` and ``|H - H0|`` that each run recorded (:mod:`benchmarks.drift`)
 regress when they grow faster than before (bounded, linear, quadratic, superquadratic,
 exponential). A run that finished in the baseline and now does not (``failed``,

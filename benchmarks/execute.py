@@ -354,7 +354,8 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
     # Which lanes each summary is over: final errors only where every lane that finished
     # has one.
     over = {name: ok for name in LANE_METRICS}
-    if np.isnan(table["final_state_error"][ok]).any():
+    partial = bool(np.isnan(table["final_state_error"][ok]).any())
+    if partial:
         over["final_state_error"] = np.zeros_like(ok)
     worst = {name: _worst(np.max, table[name][over[name]]) for name in LANE_METRICS}
     scored = over["final_state_error"]
@@ -382,8 +383,10 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
                          fail_time=_given(first.fail_time),
                          message=f"{int((~ok).sum())} of {len(ok)} lanes failed; the first, "
                                  f"lane {lane}: {first.message}")
+    # A block of references that could not be made matters only where a lane that
+    # finished needed it.
     notes = list(dict.fromkeys(note for part in parts for note in part.notes))
-    if notes:
+    if notes and partial:
         missing = "no final errors: no reference for " + "; for ".join(notes)
         ending = replace(ending, message="; ".join(filter(None, [ending.message, missing])))
     work = replace(nominal.work, device="+".join(sorted({part.device for part in parts})),

@@ -60,15 +60,20 @@ def _ratio(base: float, cur: float) -> str:
 
 
 def compare_metric(metric: str, base: float | None, cur: float | None,
-                   spread: tuple[float, float] | None = None) -> tuple[str | None, str]:
+                   spread: tuple[float, float] | None = None,
+                   floor: float = 0.0) -> tuple[str | None, str]:
     """``("regression" | "improvement" | None, change text)`` for one metric, ``None``
     meaning not measured.
 
     ``spread``, where given, is the range ``(lo, hi)`` that round-off alone gave the
     baseline's metric (:func:`benchmarks.check.probe`): a regression is then measured from
     its worse end and an improvement from its better end, so that a value anywhere in it
-    is neither."""
+    is neither. ``floor`` raises a ``lower`` metric's absolute floor: for a final error,
+    the accuracy of the references it was measured against, below which a change is the
+    reference's, not the method's."""
     tol = tolerance(metric)
+    tol = Tolerance(tol.direction, tol.factor, max(tol.floor, floor)) \
+        if tol.direction == "lower" else tol
     if base is None and cur is None:
         return None, ""
     if cur is None:
@@ -153,7 +158,8 @@ def compare_growth(base: str | None, cur: str | None) -> tuple[str | None, str]:
 def compare(baseline: dict, current: dict) -> list[Finding]:
     """Every regression, improvement and note between two ``{run id: entry}`` maps.
 
-    An entry holds ``status``, ``fail_step``, ``sensitive`` and ``metrics``; a baseline
+    An entry holds ``status``, ``fail_step``, ``sensitive``, ``metrics`` and ``floor``
+    (the reference floor of its final error, where recorded); a baseline
     entry may list in ``roundoff`` the metrics and drift classes that round-off decides
     (:func:`benchmarks.check.probe`), and give in ``spread`` the range round-off gave each
     such metric. A listed metric with a spread is gated against that range widened by its
@@ -197,12 +203,21 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
                                         gating("fail_step")))
             continue
         names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
+        # The larger of the two runs' reference floors: where both final errors lie below
+        # it, neither they nor their digits (scd) can tell the runs apart.
+        floor = max(base.get("floor") or 0.0, cur.get("floor") or 0.0)
+        finals = (base["metrics"].get("final_state_error"),
+                  cur["metrics"].get("final_state_error"))
+        at_floor = floor > 0 and all(e is not None and e <= floor for e in finals)
         for metric in names:
             b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
             if metric not in TOLERANCES and not metric.startswith("inv:"):
                 continue
+            if metric == "scd" and at_floor:
+                continue
             spread = spreads.get(metric)
-            kind, change = compare_metric(metric, b, c, spread)
+            kind, change = compare_metric(metric, b, c, spread,
+                                          floor if metric == "final_state_error" else 0.0)
             if kind is not None:
                 shown = _fmt(b) if spread is None else \
                     f"{_fmt(b)} (round-off {_fmt(min(spread))} to {_fmt(max(spread))})"
@@ -223,11 +238,13 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
 def entry(row) -> dict:
     """What the gate compares of a run's row (a ``runs.csv`` dict or a stored row)."""
     fail_step = _given(row.get("fail_step"))
+    floor = _given(row.get("reference_floor"))
     return {
         "status": row["status"],
         "message": _given(row.get("message")) or "",
         "fail_step": None if fail_step is None else int(fail_step),
         "sensitive": bool(_given(row.get("sensitive"))),
         "metrics": metrics_of(row),
+        "floor": None if floor is None else float(floor),
         "growth": {series: kind_of(_given(row.get(series))) for series in GROWTH},
     }

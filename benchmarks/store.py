@@ -200,8 +200,13 @@ def _v4_to_v5(db: sqlite3.Connection) -> None:
 
 def _v5_to_v6(db: sqlite3.Connection) -> None:
     """Version 5 -> 6: the quantiles of an ensemble's final errors (``final_q...``), empty
-    for the runs that version 5 held (whose lanes but 0 had no reference)."""
+    for the runs that version 5 held. An ensemble's ``final_state_error``, ``scd`` and
+    ``reference_floor`` are emptied too: in version 5 they were lane 0's, since the other
+    lanes had no reference, and from version 6 on they are the worst lane's, so that the
+    history would otherwise compare lane 0 with the worst lane and find a regression."""
     _add_columns(db, 6)
+    db.execute("UPDATE runs SET final_state_error = NULL, scd = NULL, "
+               "reference_floor = NULL WHERE lanes IS NOT NULL")
 
 
 #: version -> the function that upgrades a database of that version by one.

@@ -73,9 +73,11 @@ ESTIMATE_RTOL = 1e-13
 #: pendulum over 100 s takes 6.8e4 at :data:`REFERENCE_RTOL`; the stiff flyball governor
 #: over 10 s 8e5 (16 lanes).
 MAX_REFERENCE_EVALS = 200_000
-#: Blocks of references kept in a process, least recently used first out: 16384 lanes, a
-#: few MB for a small system.
-KEPT_BLOCKS = 64
+#: Bytes of references a process keeps, least recently used block first out (always the
+#: latest block): 256 bytes a lane on the pendulum, 2 MiB a lane on ``chain:N=16384``.
+#: Bounded in bytes, not blocks, so that a sweep over the runs of one large ensemble does
+#: not drop each block before its next run takes it.
+KEPT_BYTES = 256 << 20
 _BLOCKS: OrderedDict = OrderedDict()
 
 
@@ -145,9 +147,9 @@ def references(case: Case, seed: int, first: int, stop: int, t: float
     reference at ``t`` or its block got none, and why each block that got none did not
     (empty where every block got its references).
 
-    A block is computed once per process (the latest :data:`KEPT_BLOCKS` are kept), so the
-    runs of the ensembles of one case and seed, whatever their methods, steps and sizes,
-    share it; :func:`forget` drops them.
+    A block is computed once per process, so the runs of the ensembles of one case and
+    seed, whatever their methods, steps and sizes, share it as long as it is kept (the
+    latest :data:`KEPT_BYTES`); :func:`forget` drops them.
     """
     own = case.reference
     if own is None or not own.available_at(t):
@@ -159,7 +161,9 @@ def references(case: Case, seed: int, first: int, stop: int, t: float
     for block in range(first // REFERENCE_LANES, (stop - 1) // REFERENCE_LANES + 1):
         if (key, block) not in _BLOCKS:
             _BLOCKS[key, block] = _block(case, seed, block, t)
-            while len(_BLOCKS) > KEPT_BLOCKS:
+            while len(_BLOCKS) > 1 and sum(
+                    states.nbytes + floors.nbytes for states, floors, _ in _BLOCKS.values()
+            ) > KEPT_BYTES:
                 _BLOCKS.popitem(last=False)
         _BLOCKS.move_to_end((key, block))
         start = block * REFERENCE_LANES

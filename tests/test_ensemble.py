@@ -543,6 +543,26 @@ def test_lane_references_agree_with_the_closed_form_and_an_independent_solve():
     assert ensemble.references(problems.make("chain"), 1, 0, 2, 2.0) == ([None, None], ())
 
 
+def test_reference_blocks_are_kept_by_their_bytes(monkeypatch):
+    """A sweep over the blocks of an ensemble's references computes each once while they
+    fit in :data:`problems.ensemble.KEPT_BYTES`, and drops the oldest beyond it."""
+    case = problems.make("pendulum").with_t_end(0.5)
+    made, real = [], ensemble._block
+    monkeypatch.setattr(ensemble, "_block", lambda *a: made.append(a[2]) or real(*a))
+    monkeypatch.setattr(ensemble, "_BLOCKS", type(ensemble._BLOCKS)())
+    lanes = 3 * ensemble.REFERENCE_LANES
+    first, _ = ensemble.references(case, 1, 0, lanes, 0.5)
+    again, _ = ensemble.references(case, 1, 0, lanes, 0.5)
+    assert made == [0, 1, 2] and [r.floor for r in again] == [r.floor for r in first]
+    states, floors, _ = ensemble._BLOCKS[next(iter(ensemble._BLOCKS))]
+    monkeypatch.setattr(ensemble, "KEPT_BYTES", 2 * (states.nbytes + floors.nbytes))
+    ensemble.forget()
+    made.clear()
+    for _ in range(2):
+        ensemble.references(case, 1, 0, lanes, 0.5)
+    assert made == [0, 1, 2, 0, 1, 2] and len(ensemble._BLOCKS) == 2
+
+
 def test_ensemble_final_errors_are_each_lanes_against_its_reference(monkeypatch):
     """The per-lane table holds each lane's final error against its own reference, with
     its floor; the record's final error is the worst lane's and its floor the largest; a
@@ -572,6 +592,14 @@ def test_ensemble_final_errors_are_each_lanes_against_its_reference(monkeypatch)
     # Lane 0 alone is no distribution: no summary of final errors at all.
     assert spent.metrics.final_state_error is None and spent.spread.final_q50 is None
     assert spent.metrics.reference_floor is None and spent.metrics.scd is None
+    # A block that could not be made, none of whose lanes finished (here: none ran), takes
+    # nothing from the lanes that did, and the message does not say it does.
+    real = ensemble.references
+    monkeypatch.undo()  # evaluations as before, and without the blocks that ran out
+    monkeypatch.setattr(ensemble, "references", lambda *a: (
+        real(*a)[0], ("lanes 256 to 511: no lane of it finished",)))
+    other = execute(plan([spec], "test")[0], repeats=1)
+    assert other.ending.message == "" and other.spread.final_q100 == record.spread.final_q100
 
 
 def test_final_error_quantiles_at_the_reference_floor_say_so():

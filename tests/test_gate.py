@@ -55,6 +55,23 @@ def test_status_changes_and_sensitive_problems():
     assert back[("a", "status")] == "improvement"
 
 
+def test_final_errors_below_the_reference_floor_are_the_references_not_the_methods():
+    """A final error that moved only below the larger of the two runs' reference floors
+    (an ensemble's lanes are scored against computed references) is no change, nor are
+    its digits; one that rose above it is a regression."""
+    base = {"a": {**entry(final_state_error=8.2e-14, scd=13.0), "floor": 1e-15}}
+    cur = {"a": {**entry(final_state_error=3.6e-12, scd=11.2), "floor": 1.1e-11}}
+    assert compare(base, cur) == []
+    cur["a"]["metrics"].update(final_state_error=1e-9, scd=8.0)
+    found = {f.metric: f.kind for f in compare(base, cur)}
+    assert found == {"final_state_error": "regression", "scd": "regression"}
+    # Without a floor (an older baseline's entry) the first change is a regression (its
+    # digits, both beyond scd's floor of 11, are not).
+    del base["a"]["floor"]
+    cur["a"].update(floor=None, metrics={"final_state_error": 3.6e-12, "scd": 11.2})
+    assert [f.metric for f in compare(base, cur)] == ["final_state_error"]
+
+
 def test_drift_classes_that_grow_faster_regress():
     base = {"a": {**entry(), "growth": {"pos_growth": "bounded", "energy_growth": "linear"}}}
     cur = {"a": {**entry(), "growth": {"pos_growth": "quadratic", "energy_growth": "bounded"}}}

@@ -187,6 +187,26 @@ def test_a_run_stored_without_the_spread_of_its_solves_reads_as_one_solve(tmp_pa
     assert (t.low, t.high, t.repeats, t.measured) == (2.0, 2.0, 1, False)
 
 
+def test_version_5_ensembles_lose_lane_0s_final_error_and_single_runs_keep_theirs(tmp_path):
+    """Version 5 -> 6: an ensemble's final error, scd and floor were lane 0's and are now
+    the worst lane's, so the migration empties them rather than let the history compare
+    the two; a single run's stay."""
+    path = tmp_path / "old.sqlite"
+    final = dict(final_state_error=8.2e-14, scd=12.5, reference_floor=1e-15)
+    with Store(path) as st:
+        session = st.begin("old")
+        st.add(session, record(run_key="single", **final))
+        st.add(session, record(run_key="ensemble", lanes=8, seed=1, **final))
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA user_version = 5")
+    with Store(path):
+        pass
+    runs = load_runs(path).set_index("run_key")
+    for column, value in final.items():
+        assert runs.loc["single", column] == value
+        assert np.isnan(runs.loc["ensemble", column])
+
+
 def test_whole_numbers_stored_as_reals_are_migrated_to_integers(tmp_path):
     """runs.csv of a resumed batch lists a count as 1000, not 1000.0, whoever stored it."""
     path = tmp_path / "old.sqlite"
