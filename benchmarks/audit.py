@@ -62,11 +62,16 @@ def _refuse(case, message: str, func=None) -> AuditError:
     return AuditError(located(message, func, problems.REGISTRY.get(case.name)))
 
 
-def _check(case, label: str, func, call, shape: tuple[int, ...]) -> np.ndarray:
-    """Evaluate ``call()`` (which calls ``func``) and check its shape and finiteness."""
+def _check(case, args, label: str, func, call, shape: tuple[int, ...]) -> np.ndarray:
+    """Evaluate ``call(q, v, t)`` (which calls ``func``) at ``args``, traced as the
+    integrators' compiled programs trace it and then with values, and check its shape and
+    finiteness."""
     what = f"{label} of problem {case.name!r}"
     try:
-        value = np.asarray(call(), dtype=np.float64)
+        # Traced first: autodiff alone runs the function on concrete values, where Python
+        # control flow on q works and would pass the audit, then fail every run.
+        jax.make_jaxpr(call)(*args)
+        value = np.asarray(call(*args), dtype=np.float64)
     except AuditError:
         raise
     except Exception as exc:  # the user's function raised: say where and what
@@ -90,15 +95,16 @@ def audit(case) -> None:
     s = case.system
     n, m = s.n, s.m
     f64 = jnp.float64
-    q, v, t = (jnp.asarray(case.q0, f64), jnp.asarray(case.v0, f64), jnp.asarray(case.t0, f64))
+    args = q, v, t = (jnp.asarray(case.q0, f64), jnp.asarray(case.v0, f64),
+                      jnp.asarray(case.t0, f64))
     if s.kinetic is not None:
-        _check(case, "kinetic(q, v)", s.kinetic, lambda: s.kinetic(q, v), ())
-        _check(case, "d kinetic / dq (autodiff)", s.kinetic,
-               lambda: jax.grad(s.kinetic, argnums=0)(q, v), (n,))
+        _check(case, args, "kinetic(q, v)", s.kinetic, lambda q, v, t: s.kinetic(q, v), ())
+        _check(case, args, "d kinetic / dq (autodiff)", s.kinetic,
+               lambda q, v, t: jax.grad(s.kinetic, argnums=0)(q, v), (n,))
         M = None
         if n <= DENSE_AUDIT_MAX:
-            M = _check(case, "mass from kinetic (autodiff)", s.kinetic,
-                       lambda: case.mech.mass(q), (n, n))
+            M = _check(case, args, "mass from kinetic (autodiff)", s.kinetic,
+                       lambda q, v, t: case.mech.mass(q), (n, n))
         elif case.mech.mass_blocks is not None:
             # Too large to form: the blocks' Cholesky factors are finite exactly where
             # every block is positive definite.
@@ -107,8 +113,9 @@ def audit(case) -> None:
                     raise _refuse(case, f"mass of problem {case.name!r} (from kinetic) is "
                                         f"not positive definite at q0", s.kinetic)
     elif callable(s.mass):
-        M = _check(case, "mass(q)", s.mass, lambda: s.mass(q), (n, n))
-        _check(case, "d mass / dq (autodiff)", s.mass, lambda: jax.jacfwd(s.mass)(q), (n, n, n))
+        M = _check(case, args, "mass(q)", s.mass, lambda q, v, t: s.mass(q), (n, n))
+        _check(case, args, "d mass / dq (autodiff)", s.mass,
+               lambda q, v, t: jax.jacfwd(s.mass)(q), (n, n, n))
     elif sp.issparse(s.mass):
         if s.mass.shape != (n, n) or not np.all(np.isfinite(s.mass.data)):
             raise _refuse(case, f"mass of problem {case.name!r} has shape {s.mass.shape}, not "
@@ -127,13 +134,15 @@ def audit(case) -> None:
         raise _refuse(case, f"mass of problem {case.name!r} is not positive definite at q0 "
                             f"(smallest eigenvalue {np.min(np.linalg.eigvalsh(M)):.3g})", mass)
     if s.potential is not None:
-        _check(case, "potential(q)", s.potential, lambda: s.potential(q), ())
-        _check(case, "grad potential (autodiff)", s.potential,
-               lambda: jax.grad(s.potential)(q), (n,))
-    _check(case, "constraints(q, t)", s.constraints, lambda: s.constraints(q, t), (m,))
-    _check(case, "d constraints / dq (autodiff)", s.constraints,
-           lambda: jax.jacfwd(s.constraints, argnums=0)(q, t), (m, n))
+        _check(case, args, "potential(q)", s.potential, lambda q, v, t: s.potential(q), ())
+        _check(case, args, "grad potential (autodiff)", s.potential,
+               lambda q, v, t: jax.grad(s.potential)(q), (n,))
+    _check(case, args, "constraints(q, t)", s.constraints,
+           lambda q, v, t: s.constraints(q, t), (m,))
+    _check(case, args, "d constraints / dq (autodiff)", s.constraints,
+           lambda q, v, t: jax.jacfwd(s.constraints, argnums=0)(q, t), (m, n))
     if s.forces is not None:
-        _check(case, "forces(t, q, v)", s.forces, lambda: s.forces(t, q, v), (n,))
+        _check(case, args, "forces(t, q, v)", s.forces,
+               lambda q, v, t: s.forces(t, q, v), (n,))
     for name, func in s.invariants.items():
-        _check(case, f"invariant {name!r}(q, v)", func, lambda: func(q, v), ())
+        _check(case, args, f"invariant {name!r}(q, v)", func, lambda q, v, t: func(q, v), ())

@@ -108,7 +108,13 @@ def _bad_metric(metric: str, value) -> bool:
     """Whether a baseline metric value cannot be compared with (see the module notes)."""
     if value is None:
         return False
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return True
+    try:
+        value = float(value)  # JSON's integers have no bound
+    except OverflowError:
+        return True
+    if math.isnan(value):
         return True
     return math.isinf(value) and not (value > 0 and metric in TOLERANCES
                                       and TOLERANCES[metric].direction == "higher")
@@ -121,7 +127,8 @@ def check_entries(runs: dict, where: str) -> None:
     ------
     InputError
         An entry that is not an object, lacks ``status`` or ``metrics``, or has a metric
-        that is not a number or null, or is NaN or infinite (but ``scd = +inf``).
+        that is not a number or null, or is NaN or infinite (but ``scd = +inf``), or a
+        ``floor`` that is not a finite number >= 0 or null.
     """
     for rid, entry in runs.items():
         if not isinstance(entry, dict) or not isinstance(entry.get("status"), str) \
@@ -134,8 +141,13 @@ def check_entries(runs: dict, where: str) -> None:
                              f"recreate the baseline with --update")
         for metric, value in entry["metrics"].items():
             if _bad_metric(metric, value):
-                raise InputError(f"{where}: run {rid!r}: metric {metric} = {value!r} cannot "
+                raise InputError(f"{where}: run {rid!r}: metric {metric} = {value!r:.40} cannot "
                                  f"be compared with; recreate the baseline with --update")
+        floor = entry.get("floor")
+        if floor is not None and (_bad_metric("floor", floor) or not 0 <= floor < math.inf):
+            raise InputError(f"{where}: run {rid!r}: floor = {floor!r:.40} must be a reference "
+                             f"floor (a finite number >= 0, or null); recreate the baseline "
+                             f"with --update")
         spread = entry.get("spread", {})
         if not isinstance(spread, dict) or not all(
                 isinstance(v, list) and len(v) == 2 and v[0] is not None and v[1] is not None

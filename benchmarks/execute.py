@@ -41,6 +41,7 @@ from benchmarks.records import (QUANTILES, Ending, Metrics, Record, RunSpec, Spr
                                 Timing, Work, provenance)
 from integrators.base import COUNTERS, Grid, Trajectory
 from problems import ensemble
+from problems.source import located
 from problems.spec import ProblemSpec
 
 
@@ -172,7 +173,18 @@ def execute(run: PlannedRun | RunSpec, repeats: int = 3, deadline: float | None 
         record = measure(run, case, traj, timing)
         return replace(record, work=replace(record.work, device=device.platform))
     except Exception as exc:  # a defect in the method or the user's functions
-        return Record(run.run, Ending(Status.ERROR, explain(exc)), timing)
+        return Record(run.run, Ending(Status.ERROR, _where_defined(explain(exc), exc, run)),
+                      timing)
+
+
+def _where_defined(message: str, exc: Exception, run: PlannedRun) -> str:
+    """``message``, led by where the run's problem was defined where it is the user's and
+    the error arose in none of the user's frames (a transformation JAX replays from a
+    traced program, such as ``vmap`` of a callback)."""
+    name = run.problem.name
+    if problems.user_frame(exc) or problems.origin(name) == "built-in":
+        return message
+    return located(f"in problem {name!r}: {message}", problems.REGISTRY.get(name))
 
 
 def _non_finite(traj: Trajectory) -> tuple[str, float | None] | None:

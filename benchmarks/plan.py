@@ -96,8 +96,16 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
     ------
     SpecError
         An unknown name, parameter or option, or a value of the wrong type; a method whose
-        spec sets a setting that is also swept (``rattle:h=0.02`` with ``hs``).
+        spec sets a setting that is also swept (``rattle:h=0.02`` with ``hs``); ``seed``,
+        ``device`` or ``lanes_per_chunk`` without ``lanes``.
     """
+    if lanes is None:
+        given = [name for name, value in (("seed", seed), ("device", device),
+                                          ("lanes_per_chunk", lanes_per_chunk))
+                 if value is not None]
+        if given:
+            raise SpecError(f"{given[0]} applies to ensembles only: give the number of lanes "
+                            f"too")
     resolved = [problems.resolve(p, origin) for p in problem_specs]
     methods = [integrators.resolve(i, origin) for i in integrator_specs]
     ensemble = ((None, None) if lanes is None else (int(lanes), int(seed or 0))) + (

@@ -188,13 +188,16 @@ def plan(args) -> tuple[list[RunSpec], dict, tuple[float, ...]]:
         runs = [dataclasses.replace(r, t_end=args.t_end) for r in runs]
     if args.timeout is not None:
         runs = [dataclasses.replace(r, timeout=args.timeout) for r in runs]
-    if args.ensemble is not None or args.seed is not None:
-        runs = [dataclasses.replace(r, lanes=args.ensemble or r.lanes or 1,
-                                    seed=args.seed if args.seed is not None else r.seed or 0)
-                for r in runs]
-    for option in ("device", "lanes_per_chunk"):
+    if args.ensemble is not None:
+        runs = [dataclasses.replace(r, lanes=args.ensemble, seed=r.seed or 0) for r in runs]
+    # How ensembles run: the suite's ensembles take them, its single runs stay single.
+    for option in ("seed", "device", "lanes_per_chunk"):
         if getattr(args, option) is not None:
-            runs = [dataclasses.replace(r, **{option: getattr(args, option)}) for r in runs]
+            if all(r.lanes is None for r in runs):
+                raise InputError(f"--{option.replace('_', '-')} applies to ensembles only, "
+                                 f"and suite {suite.name!r} has none: give --ensemble K too")
+            runs = [r if r.lanes is None else
+                    dataclasses.replace(r, **{option: getattr(args, option)}) for r in runs]
     # The command line's engine wins over the suite's.
     cluster = args.cluster or (suite.cluster if args.jobs is None else None)
     return runs, dict(suite=suite.name, repeats=args.repeats or suite.repeats or 3,

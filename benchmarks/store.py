@@ -75,6 +75,10 @@ APPLICATION_ID = 0x44524654
 #: Tables a store of any version holds: how a store written before the application id was
 #: set is told from another program's SQLite file.
 OUR_TABLES = frozenset({"sessions", "runs", "series"})
+#: Columns of those tables that every version has (version 1's), which readers rely on.
+CORE_COLUMNS = {"sessions": ("id", "suite"),
+                "runs": ("id", "session", "problem", "integrator", "status"),
+                "series": ("run", "name", "data")}
 #: The first 16 bytes of every SQLite database file.
 SQLITE_MAGIC = b"SQLite format 3\x00"
 #: What every refusal of a file says to do about it.
@@ -282,8 +286,8 @@ def identify(path) -> int:
     Raises
     ------
     DamagedStore
-        An empty (truncated) file, or one that SQLite cannot read or whose
-        ``PRAGMA quick_check`` fails.
+        An empty (truncated) file, one that SQLite cannot read or whose ``PRAGMA
+        quick_check`` fails, or one that lacks a table or column of :data:`CORE_COLUMNS`.
     ForeignFile
         A file that is not SQLite, or an SQLite file of another program (another
         application id, or none and not our tables).
@@ -317,14 +321,21 @@ def identify(path) -> int:
                         f"its tables are {', '.join(sorted(tables)) or 'none'}")
                 raise ForeignFile(f"{path}: not a driftbench results store (an SQLite file "
                                   f"of another program: {what}); {RECOVER}")
-            problems = [r[0] for r in con.execute("PRAGMA quick_check")]
+            missing = [f"table {table}" if table not in tables else f"column {table}.{c}"
+                       for table, columns in CORE_COLUMNS.items()
+                       for c in (columns if table not in tables else
+                                 set(columns) - set(_table_columns(con, table)))][:1]
+            problems = [f"no {missing[0]}"] if missing else \
+                [r[0] for r in con.execute("PRAGMA quick_check")]
         finally:
             con.close()
     except sqlite3.DatabaseError as exc:
         raise DamagedStore(f"{path}: damaged results store (SQLite: {exc}); "
                            f"{RECOVER}") from None
     if problems != ["ok"]:
-        raise DamagedStore(f"{path}: damaged results store (quick_check: {problems[0]}"
+        raise DamagedStore(f"{path}: damaged results store ("
+                           f"{'' if problems[0].startswith('no ') else 'quick_check: '}"
+                           f"{problems[0]}"
                            f"{f' and {len(problems) - 1} more' if len(problems) > 1 else ''}"
                            f"); {RECOVER}")
     _CHECKED[state] = app
@@ -501,12 +512,16 @@ def _reader(db) -> sqlite3.Connection:
         con = _connect_read_only(path)
     except sqlite3.Error as exc:
         raise StoreError(f"{path}: cannot be read: {exc}") from None
-    if _version(con) < SCHEMA_VERSION:
-        memory = sqlite3.connect(":memory:")
-        con.backup(memory)
-        con.close()
-        con = memory
-    migrate(con, str(path))
+    try:
+        if _version(con) < SCHEMA_VERSION:
+            memory = sqlite3.connect(":memory:")
+            con.backup(memory)
+            con.close()
+            con = memory
+        migrate(con, str(path))
+    except BaseException:
+        con.close()  # and so no empty -wal and -shm files are left beside a refused store
+        raise
     return con
 
 
@@ -554,10 +569,14 @@ def load_series(db, run_id: int) -> dict[str, dict[str, np.ndarray]]:
     groups = {"window": "windows", "sample": "samples", "lane": "lanes"}
     for name, data, shape in rows:
         kind, _, key = name.partition(":")
-        array = np.frombuffer(data, dtype="<f8").astype(np.float64)
-        if shape:
-            array = array.reshape(json.loads(shape))
-        out[groups[kind]][key] = array
+        try:
+            array = np.frombuffer(data, dtype="<f8").astype(np.float64)
+            if shape:
+                array = array.reshape(json.loads(shape))
+            out[groups[kind]][key] = array
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DamagedStore(f"{db}: damaged results store (series {name!r} of run "
+                               f"{run_id}: {type(exc).__name__}: {exc}); {RECOVER}") from None
     return out
 
 

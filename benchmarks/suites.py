@@ -84,6 +84,13 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _beyond_int64(value) -> bool:
+    """Whether ``value`` (or an item of it) is an integer outside TOML's 64-bit range,
+    which ``tomllib`` reads all the same (and ``float`` of it may overflow)."""
+    items = value if isinstance(value, list) else [value]
+    return any(isinstance(x, int) and not -2**63 <= x < 2**63 for x in items)
+
+
 #: Type checks by the description of what a key holds.
 TYPE_CHECKS = {
     "a string": lambda v: isinstance(v, str),
@@ -94,6 +101,9 @@ TYPE_CHECKS = {
     STRINGS: lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
     NUMBERS: lambda v: isinstance(v, list) and all(_is_number(x) for x in v),
 }
+
+#: Group keys that say how an ensemble runs, and so need ``ensemble``.
+ENSEMBLE_ONLY = ("seed", "device", "lanes_per_chunk")
 
 #: Range checks: key -> (test of one value, what the value must be).
 RANGES = {
@@ -158,10 +168,13 @@ def _group_spans(text: str) -> list[tuple[int, int]]:
 
 
 def _line_of(text: str, key: str, span: tuple[int, int] | None = None) -> int:
-    """Line of ``key = ...`` (within ``span`` if given; top level: before any table)."""
+    """Line of ``key = ...`` (within ``span`` if given; top level: before any table, or
+    the header ``[key]`` of a table)."""
     for i, line in enumerate(text.splitlines(), 1):
         if span is not None and not span[0] <= i <= span[1]:
             continue
+        if span is None and re.match(rf"\s*\[\s*{re.escape(key)}\s*\]", line):
+            return i
         if span is None and re.match(r"\s*\[", line):
             break
         if re.match(rf"\s*{re.escape(key)}\s*=", line):
@@ -198,6 +211,9 @@ def load(name: str) -> Suite:
             if key not in allowed:
                 fail(line_of(key), f"unknown key {key!r}{where}{suggest(key, allowed)}; "
                                    f"allowed: {', '.join(allowed)}")
+            if _beyond_int64(value):
+                fail(line_of(key), f"{key!r}{where} holds an integer beyond TOML's 64-bit "
+                                   f"range")
             if not TYPE_CHECKS[allowed[key]](value):
                 fail(line_of(key), f"{key!r}{where} must be {allowed[key]}, "
                                    f"not {type(value).__name__} {value!r}")
@@ -208,6 +224,9 @@ def load(name: str) -> Suite:
                     fail(line_of(key), f"{key!r}{where} = {bad[0]!r} must be {must}")
             if key in ("problems", "integrators", "studies") and not value:
                 fail(line_of(key), f"{key!r}{where} is an empty list")
+            if key in ENSEMBLE_ONLY and "ensemble" not in table:
+                fail(line_of(key), f"{key!r}{where} applies to ensembles only: give "
+                                   f"'ensemble = K' too")
 
     check(data, TOP_KEYS, "", lambda key: _line_of(text, key))
     groups = data.get("group", [])

@@ -218,7 +218,7 @@ def _load() -> None:
 #: Folders of the library's own code and of installed code: frames there are not the user's.
 _NOT_USER = tuple(Path(p).resolve() for p in (
     *(Path(__file__).resolve().parent.parent / pkg
-      for pkg in ("problems", "integrators", "benchmarks", "reports")),
+      for pkg in ("problems", "integrators", "linalg", "benchmarks", "reports", "studies")),
     sysconfig.get_paths()["stdlib"], sysconfig.get_paths()["purelib"],
     sysconfig.get_paths()["platlib"]))
 

@@ -268,6 +268,14 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
     if not np.isfinite(t_end) or t_end <= t0:
         raise ValueError(located(f"{name}: t_end = {t_end} must be finite and > t0 = {t0}",
                                  sys._getframe(1)))
+    # The constraints' shape first: with one too many, the extra one's value at q0 would
+    # be reported as inconsistent initial values.
+    shape = jax.eval_shape(lambda q, t: jnp.asarray(system.constraints(q, t)),
+                           jnp.asarray(q0), jnp.asarray(t0)).shape
+    if shape != (system.m,):
+        raise ValueError(located(f"{name}: constraints(q, t) returns shape {shape}, not "
+                                 f"({system.m},) (System m = {system.m})",
+                                 sys._getframe(1)))
     mech = system.mech
     pos, vel = residuals(mech, q0, v0, t0)
     if max(pos, vel) > PROJECT_TOL:

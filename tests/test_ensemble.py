@@ -418,8 +418,14 @@ def test_the_memory_benchmark_runs_the_method_and_step_it_is_given(capsys):
 
 @pytest.mark.parametrize("argv, what", [(["--methods", "nonsense"], "unknown integrator"),
                                         (["--memory-method", "rattle:foo=1"], "option 'foo'"),
-                                        (["--problems", "nope"], "unknown problem")])
-def test_the_ensemble_benchmark_names_a_bad_method_or_problem_in_one_line(capsys, argv, what):
+                                        (["--problems", "nope"], "unknown problem"),
+                                        (["--lanes", "4", "0"], "--lanes 0 must be 1 to"),
+                                        (["--memory-lanes", "-2"], "--memory-lanes -2"),
+                                        (["--h", "0"], "--h 0 must be positive"),
+                                        (["--steps", "0.5"], "--steps 0.5 must be at least 1"),
+                                        (["--steps", "1e300", "--h", "1e300"],
+                                         "no finite horizon")])
+def test_the_ensemble_benchmark_refuses_bad_input_in_one_line(capsys, argv, what):
     from benchmarks.perf import ensemble
 
     with pytest.raises(SystemExit) as exit_:

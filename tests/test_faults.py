@@ -28,7 +28,7 @@ from benchmarks.executors import PLUGIN_ENV
 from benchmarks.files import FolderLock, replace_file
 from benchmarks.records import CODE_VERSION_ENV
 from benchmarks.store import (APPLICATION_ID, DamagedStore, ForeignFile, Store, StoreError,
-                              identify, load_runs)
+                              identify, load_runs, load_series)
 from test_store import record
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -118,6 +118,18 @@ def _foreign_id_with_our_tables(path):
     con.close()
 
 
+def _altered(*statements):
+    """A store of ours, then ``statements`` run on it (a table or column dropped)."""
+    def spoil(path):
+        make_store(path)
+        with sqlite3.connect(path) as con:
+            con.execute("PRAGMA journal_mode=DELETE")
+            for statement in statements:
+                con.execute(statement)
+        con.close()
+    return spoil
+
+
 BAD_FILES = [
     ("empty", lambda p: p.write_bytes(b""), DamagedStore, "empty"),
     ("truncated", _truncated, DamagedStore, "damaged"),
@@ -126,6 +138,9 @@ BAD_FILES = [
     ("damaged-pages", _damaged_pages, DamagedStore, "damaged"),
     ("foreign-sqlite", _foreign_tables, ForeignFile, "photos"),
     ("foreign-application-id", _foreign_id_with_our_tables, ForeignFile, "0x4d2"),
+    ("missing-table", _altered("DROP TABLE series"), DamagedStore, "no table series"),
+    ("missing-column", _altered('ALTER TABLE runs DROP COLUMN "status"'), DamagedStore,
+     "no column runs.status"),
 ]
 
 
@@ -143,6 +158,13 @@ def test_damaged_and_foreign_store_files_are_refused_and_left_as_they_were(
         assert "\n" not in message and str(path) in message and words in message
         assert "move it aside" in message
     assert digest(path) == before
+
+
+def test_a_series_whose_shape_does_not_fit_its_data_is_a_damaged_store(tmp_path):
+    path = tmp_path / "driftbench.sqlite"
+    _altered("UPDATE series SET shape = '[7, 3]' WHERE name = 'sample:q'")(path)
+    with pytest.raises(DamagedStore, match="series 'sample:q' of run 1: ValueError"):
+        load_series(path, 1)
 
 
 def test_the_command_line_refuses_a_damaged_store_with_one_line(tmp_path, capsys):

@@ -233,6 +233,8 @@ def baseline_file(path, suite="gate", runs=None):
     ("gate", {"a": entry(max_pos_residual=float("nan"))}, "max_pos_residual = nan"),
     ("gate", {"a": entry(final_state_error=float("inf"))}, "final_state_error = inf"),
     ("gate", {"a": entry(scd="12")}, "scd = '12'"),
+    ("gate", {"a": entry(scd=10 ** 400)}, "scd = 1000000000"),   # beyond a float
+    ("gate", {"a": {**entry(), "floor": -1.0}}, "floor = -1.0 must be a reference floor"),
     ("gate", {"a": {**entry(), "roundoff": "max_pos_residual"}}, "roundoff must be a list"),
     ("gate", {"a": {**entry(), "spread": {"scd": [1.0]}}}, "spread must map metric names"),
     ("gate", {"a": {**entry(), "spread": {"final_state_error": [1e-5, float("nan")]}}},

@@ -153,6 +153,10 @@ MALFORMED = [
     ("wrong-shape", BODY.format(**{**GOOD, "name": "u-shape", "constraints":
                                    "lambda q, t: jnp.array([q @ q - 1.0, 0.0 * q[1]])"}), "u-shape",
      ["constraints(q, t)", "returns shape (2,), not (1,)"]),
+    # The extra constraint not zero at q0: still its shape that is named, not the values.
+    ("wrong-shape-not-zero", BODY.format(**{**GOOD, "name": "u-shape2", "constraints":
+                                            "lambda q, t: jnp.array([q @ q - 1.0, q[0]])"}),
+     "u-shape2", ["constraints(q, t) returns shape (2,), not (1,)"]),
     ("not-finite", BODY.format(**{**GOOD, "name": "u-nan", "potential":
                                   "lambda q: 9.81 * jnp.log(q[1])"}), "u-nan",
      ["potential(q)", "not finite"]),
@@ -166,6 +170,11 @@ MALFORMED = [
                                      "lambda q, t: jnp.array([np.sqrt(q @ q) - 1.0])"}),
      "u-trace",
      ["not traceable by JAX"]),
+    # Python control flow on q works on the concrete values autodiff alone sees, not in
+    # the integrators' compiled programs.
+    ("python-if-on-q", BODY.format(**{**GOOD, "name": "u-if", "potential":
+                                      "lambda q: 9.81 * q[1] if q[1] > -2.0 else 0.0"}),
+     "u-if", ["potential(q)", "TracerBoolConversionError", "not traceable by JAX"]),
     ("inconsistent", BODY.format(**{**GOOD, "name": "u-start", "q0": "[1.1, 0.0]"}), "u-start",
      ["inconsistent initial values"]),
 ]
@@ -192,22 +201,25 @@ def test_malformed_user_files_are_refused_naming_the_file(text, name, words, tmp
 
 def test_an_error_in_user_code_during_a_run_costs_that_run_alone(tmp_path, capsys):
     path = tmp_path / "drive.py"
-    # A drive torque switched on by an ``if`` on the time: fine when checked at t0 with a
-    # number, an error once the integrator traces it.
-    path.write_text(HEADER + BODY.format(**{**GOOD, "name": "u-drive", "forces":
-                                            "lambda t, q, v: jnp.zeros(2) if t < 1.0 "
-                                            "else jnp.ones(2)"}))
+    # A drive torque from NumPy code through a callback: it passes the audit (evaluated
+    # and traced alone) but has no batching rule, which SPARK's stages need (their forces
+    # are vmapped). JAX meets that when it batches the traced program, where no frame of
+    # the user's file is on the stack: the message names where the problem is defined.
+    path.write_text("import jax\n" + HEADER + BODY.format(**{
+        **GOOD, "name": "u-drive", "forces": "lambda t, q, v: jax.pure_callback("
+        "lambda q: np.zeros(2), jax.ShapeDtypeStruct((2,), jnp.float64), q)"}))
     out = tmp_path / "out"
     code = run.main(["--load", str(path), "--problems", "u-drive", "pendulum",
-                     "--integrators", "rattle", "--h", "0.1", "--t-end", "0.5", "--jobs", "1",
-                     "--out", str(out), "--no-report"])
+                     "--integrators", "lobatto3ab3", "--h", "0.1", "--t-end", "0.5",
+                     "--jobs", "1", "--out", str(out), "--no-report"])
     assert code == 0, capsys.readouterr().err
     with open(out / "runs.csv") as fh:
         rows = {r["problem"]: r for r in csv.DictReader(fh)}
     assert rows["pendulum"]["status"] == "ok"
     assert rows["u-drive"]["status"] == "error"
-    assert f"{path}:" in rows["u-drive"]["message"]
-    assert "not traceable by JAX" in rows["u-drive"]["message"]
+    line = path.read_text().splitlines().index('@register("u-drive")') + 1
+    assert rows["u-drive"]["message"].startswith(f"{path}:{line}: in problem 'u-drive': ")
+    assert "pure_callback" in rows["u-drive"]["message"]
 
 
 def test_user_code_is_loaded_by_the_module_name_too(tmp_path, monkeypatch):

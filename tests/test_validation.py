@@ -67,6 +67,11 @@ COMMAND_LINES = [
      ["cluster 'local:100000'", "per usable core"]),
     ("seed-too-large", [*GOOD, "--ensemble", "2", "--seed", str(2 ** 63)],
      [f"--seed {2 ** 63}", f"{2 ** 63 - 1}"]),
+    ("seed-without-ensemble", [*GOOD, "--seed", "3"], ["seed applies to ensembles only"]),
+    ("device-without-ensemble", [*GOOD, "--device", "cpu"],
+     ["device applies to ensembles only"]),
+    ("suite-seed-without-ensembles", ["--suite", "seed-sps", "--seed", "3"],
+     ["--seed applies to ensembles only", "suite 'seed-sps' has none"]),
     ("linear-solver-unknown", ["--problems", "pendulum", "--integrators",
                                "rattle:linear_solver=lu"],
      ["rattle.py:", "linear_solver = 'lu'", "auto, dense, banded"]),
@@ -105,7 +110,17 @@ SUITE_FILES = [
     ("cluster-no-workers", 'cluster = "local:0"\n[[group]]\nproblems = ["pendulum"]\n'
                            'integrators = ["rattle"]\n', 1, ["cluster 'local:0'", "takes 1 to"]),
     ("seed-too-large", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
-                       f'ensemble = 2\nseed = {2 ** 63}\n', 5, ["'seed'", f"{2 ** 63 - 1}"]),
+                       f'ensemble = 2\nseed = {2 ** 63}\n', 5, ["'seed'", "64-bit"]),
+    ("seed-negative", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                      'ensemble = 2\nseed = -1\n', 5, ["'seed'", f"0 to {2 ** 63 - 1}"]),
+    ("h-beyond-int64", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                      f'h = [1{"0" * 400}]\n', 4, ["'h'", "beyond TOML's 64-bit range"]),
+    ("timeout-beyond-int64", f'timeout = {2 ** 63}\n[[group]]\nproblems = ["pendulum"]\n'
+                             'integrators = ["rattle"]\n', 1, ["'timeout'", "64-bit"]),
+    ("group-as-one-table", 'description = "x"\n\n[group]\nproblems = ["pendulum"]\n', 3,
+     ["'group' must be an array of [[group]] tables"]),
+    ("seed-without-ensemble", '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                              'seed = 4\n', 4, ["'seed' in [[group]] 1 applies to ensembles"]),
     ("bad-parameter-in-group", '[[group]]\nproblems = ["pendulum:L=-1"]\n'
                                'integrators = ["rattle"]\nh = [0.1]\n', 1,
      ["([[group]] 1)", "pendulum", "L = -1.0", "positive"]),
@@ -165,3 +180,16 @@ def test_a_registration_of_no_integrator_class_is_refused_where_it_is_made(targe
     user.write_text(f"import integrators\n\nintegrators.register('mine', {target!r})\n")
     line = refused(["--load", str(user), *GOOD, "--out", str(tmp_path / "out")], capsys)
     assert f"{user}:3" in line and "'mine'" in line and repr(target) in line
+
+
+def test_a_suites_ensembles_take_the_seed_and_its_single_runs_stay_single(tmp_path):
+    suite = tmp_path / "mixed.toml"
+    suite.write_text('[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle"]\n'
+                     'h = [0.1]\n\n[[group]]\nproblems = ["pendulum"]\n'
+                     'integrators = ["rattle"]\nh = [0.05]\nensemble = 4\nseed = 1\n')
+    runs, _, _ = run.plan(run.parser().parse_args(["--suite", str(suite), "--seed", "5",
+                                                   "--device", "cpu"]))
+    assert [(r.h, r.lanes, r.seed, r.device) for r in runs] == \
+        [(0.1, None, None, None), (0.05, 4, 5, "cpu")]
+    runs, _, _ = run.plan(run.parser().parse_args(["--suite", str(suite), "--ensemble", "8"]))
+    assert [(r.lanes, r.seed) for r in runs] == [(8, 0), (8, 1)]

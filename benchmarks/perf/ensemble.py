@@ -78,7 +78,7 @@ from benchmarks.plan import DEVICES, ENSEMBLE_GRID, jax_device
 from benchmarks.records import CommandParser
 from integrators.base import Grid
 from linalg.dense import solve as dense_solve
-from problems.ensemble import draw
+from problems.ensemble import MAX_LANES, draw
 from problems.spec import SpecError
 
 #: Lane-steps per second over one trajectory's steps per second, at :data:`BAR_LANES` lanes
@@ -339,6 +339,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="where the ensembles run (auto: a GPU where JAX sees one)")
     args = parser.parse_args(argv)
+    for name, values, ok, must in [
+            ("--lanes", args.lanes, lambda x: 1 <= x <= MAX_LANES, f"1 to {MAX_LANES}"),
+            ("--memory-lanes", [args.memory_lanes], lambda x: 1 <= x <= MAX_LANES,
+             f"1 to {MAX_LANES}"),
+            ("--steps", [args.steps], lambda x: 1 <= x < math.inf, "at least 1"),
+            ("--memory-steps", args.memory_steps, lambda x: 1 <= x < math.inf, "at least 1"),
+            ("--h", [args.h], lambda x: 0 < x < math.inf, "positive and finite"),
+            ("--memory-h", [args.memory_h], lambda x: 0 < x < math.inf,
+             "positive and finite"),
+            ("--repeats", [args.repeats], lambda x: x >= 1, "at least 1"),
+            ("--budget", [args.budget], lambda x: x > 0, "positive")]:
+        bad = [x for x in values if not ok(x)]
+        if bad:
+            parser.error(f"{name} {bad[0]:g} must be {must}")
+    if not math.isfinite(args.steps * args.h):
+        parser.error(f"--steps {args.steps:g} of --h {args.h:g} make no finite horizon")
     # Before anything computes: resolving a problem starts XLA's client, and flags set
     # after that are not applied.
     load = like_a_worker()
