@@ -34,7 +34,8 @@ A new store is built under a unique temporary name in its folder and linked into
 whole, so no empty or half-created store is ever left at the path (an empty file there is
 refused as truncated).
 
-Reading goes through pandas: :func:`load_runs`, :func:`load_series`, :func:`load_artifacts`.
+Readers: :func:`load_runs` and :func:`load_artifacts` (pandas DataFrames),
+:func:`load_series` (NumPy arrays) and :func:`load_lanes` (an ensemble's lanes, a DataFrame).
 Readers open the file read-only, and where that cannot work (a read-only folder, where
 SQLite cannot make the shared-memory file of write-ahead logging) as immutable, so the
 report reads a store it cannot write. Reading imports neither JAX nor an integrator, so the
@@ -373,8 +374,8 @@ class Store:
 
     Opening creates the file (:func:`_create_file`), or checks an existing one
     (:func:`identify`: a damaged or foreign file raises before anything is written),
-    migrates an older one in place, adds the ``runs.csv`` columns it lacks and sets the
-    application id of a store written before it was set.
+    migrates an older one in place (:func:`migrate`) and sets the application id of a
+    store written before it was set.
 
     Raises
     ------
@@ -401,7 +402,7 @@ class Store:
             raise
 
     def _open(self, app: int) -> None:
-        """Set the connection up, migrate and complete the schema."""
+        """Set the connection up and migrate the schema."""
         self.db.execute("PRAGMA journal_mode=WAL")
         # WAL with synchronous=NORMAL keeps every committed transaction through a crash
         # of the process; only a power loss may drop the last ones.
@@ -596,7 +597,8 @@ def load_lanes(db, run_id: int) -> pd.DataFrame:
 
 
 def load_artifacts(db) -> pd.DataFrame:
-    """Every stored study table and figure: ``session, section, name, kind, content, created``.
+    """Every stored study table and figure: ``session, section, name, kind, content, created,
+    commit``.
 
     ``content`` is SVG text for figures; tables decode with :func:`artifact_table`.
     """

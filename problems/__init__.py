@@ -31,12 +31,13 @@ from importlib import metadata
 from pathlib import Path
 from typing import Callable
 
-from problems.case import Case, InconsistentInitialValues, Reference, make_case  # noqa: F401
+from problems.case import (Case, InconsistentInitialValues, Perturbation, Reference,  # noqa: F401
+                           make_case)
 from problems.mechanics import Mechanics, System  # noqa: F401
 from problems.spec import ProblemSpec, SpecError, parse_value, split_spec, suggest
 
 #: The public problem-authoring API.
-__all__ = ["System", "make_case", "Reference", "Case", "register", "load"]
+__all__ = ["System", "make_case", "Reference", "Perturbation", "Case", "register", "load"]
 
 REGISTRY: dict[str, Callable[..., Case]] = {}
 

@@ -5,7 +5,7 @@ quantiles over its lanes (:class:`benchmarks.records.Spread`) and failed fractio
 per-lane distributions of each metric per method (box plots from the stored per-lane
 tables; final errors where the problem has a reference at the run's end), and the median
 lane's accuracy (its final error where there is one) against cost per lane with a band
-from the best lane to the worst beside the failed fraction against the setting. The
+and bars from the best lane to the worst beside the failed fraction against the setting. The
 verdicts name the method with the smallest worst-lane (q100) and the smallest
 median-lane (q50) max rel. energy error (max |g| where energy is not conserved), each said
 to be which, among the runs whose every lane finished.
@@ -16,6 +16,7 @@ from __future__ import annotations
 import pandas as pd
 
 from reports import figures
+from benchmarks.records import one_line
 from reports.analysis import fmt, reference_floor, setting
 from reports.document import Document, Figure, Para, Table
 
@@ -90,7 +91,14 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
                    "q100", "energy q50", "q90", "q100",
                    *(("final q50", "q90", "q100") if final else ()), "wall s"], rows,
                   f"Quantiles over the lanes that finished of max |g|{of} max rel. energy "
-                  f"error{scored}; 'failed' is the fraction of lanes that did not finish."))
+                  f"error{scored}; 'failed' is the fraction of lanes that did not finish "
+                  f"(blank quantiles: no lane finished)."))
+    failed = runs[pd.to_numeric(runs["failed_fraction"], errors="coerce") > 0]
+    if not failed.empty:
+        doc.add(Para("Runs with failed lanes: " + "; ".join(
+            f"{r['integrator']} {setting(r)}: "
+            f"{one_line(r['message'] if isinstance(r['message'], str) else '')[:300]}"
+            for _, r in failed.iterrows()) + "."))
     entries = [{"label": f"{r['integrator']} {setting(r)}", "integrator": r["integrator"],
                 "lanes": series(int(r["run_id"]))["lanes"]} for _, r in runs.iterrows()]
     entries = [e for e in entries if e["lanes"]]
@@ -104,5 +112,6 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors, dr
     doc.add(Figure(f"{problem}-ensemble-cost", draw(figures.ensemble_cost, runs, colors, problem),
                    "Left: the median lane's final error (where a run has none, its max "
                    "rel. energy error, or max |g|) against wall time per lane, the band "
-                   "from the best lane to the worst (lanes that finished). Right: the "
+                   "and a bar at each run from the best lane to the worst (lanes that "
+                   "finished). Right: the "
                    "fraction of lanes that failed against the setting."))

@@ -21,7 +21,7 @@ import numpy as np
 from matplotlib import rc_context
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
-from matplotlib.ticker import LogFormatter, NullLocator
+from matplotlib.ticker import Formatter, LogFormatter, LogLocator, NullLocator
 
 from benchmarks import gate
 from benchmarks.records import Status
@@ -29,6 +29,8 @@ from reports.analysis import LABELS, Convergence, History, Standing, fmt
 
 #: Widest log axis (decades) that gets minor ticks.
 MINOR_DECADES = 3
+#: Inches of axis per labelled tick: a label such as "1e-12" along x (y, x).
+LABEL_INCHES = (0.25, 0.45)
 
 #: Smallest value drawn on a log axis: zeros and round-off below it are drawn at it.
 LOG_FLOOR = 1e-17
@@ -43,6 +45,9 @@ MARKERS = "os^Dv<>pP*Xh"
 LEGEND_ROW = 0.2
 #: Cell colours of the overview by drift class, from kept to lost (a growth class of
 #: :mod:`benchmarks.drift`), and for a run that did not finish.
+#: Width in inches of a column of the overview's legend: its longest label, "cost winner
+#: (wall time)", at 0.06 inch a character, with its patch.
+LEGEND_COLUMN = 1.9
 CLASS_COLORS = {"bounded": "#a6d96a", "linear": "#fee08b", "quadratic": "#fdae61",
                 "superquadratic": "#f46d43", "exponential": "#d73027",
                 "indeterminate": "#d9d9d9", "did not finish": "#878787"}
@@ -119,19 +124,53 @@ def palette(families: dict[str, list[str]]) -> dict[str, tuple]:
     return colors
 
 
+class _Distinct(Formatter):
+    """Plain labels for ticks off the decades ("2e-03"), with the fewest significant
+    digits (up to 4) that tell them apart (an axis that spans less than a decade gets
+    ticks at even steps, 0.0026, 0.0028, ..., which one digit would label alike), and
+    only those at least ``gap`` decades from a decade and from the last one labelled, so
+    that labels do not run into each other."""
+
+    def __init__(self, gap: float):
+        self.gap = gap
+
+    def __call__(self, x, pos=None):
+        return self.format_ticks([x])[0]
+
+    def format_ticks(self, values):
+        for digits in range(1, 5):
+            labels = [f"{x:.{digits - 1}e}" for x in values]
+            if len(set(labels)) == len(labels):
+                break
+        last = -math.inf
+        for i, x in enumerate(values):
+            at = math.log10(x) if x > 0 else -math.inf
+            if min(at - last, at - math.floor(at), math.ceil(at) - at) < self.gap:
+                labels[i] = ""
+            else:
+                last = at
+        return labels
+
+
 def _svg(fig: Figure) -> str:
     # Plain tick labels on log axes ("1e-05", not mathtext): typesetting mathtext labels
     # was most of the report's build time.
     # Minor ticks only on log axes of a few decades, where they help reading a value:
     # making the tick objects of the 8 minor ticks per decade on wide axes was half the
-    # report's build time.
+    # report's build time. Labelled decades at most one per LABEL_INCHES of the axis, so
+    # that a narrow panel's labels do not run into each other.
+    width, height = fig.get_size_inches()
     for ax in fig.axes:
-        for axis in (ax.xaxis, ax.yaxis):
+        box = ax.get_position()
+        for axis, inches in ((ax.xaxis, box.width * width), (ax.yaxis, box.height * height)):
             if axis.get_scale() == "log":
+                room = inches / LABEL_INCHES[axis is ax.xaxis]
+                axis.set_major_locator(LogLocator(10.0, numticks=max(2, int(room)) + 1))
                 axis.set_major_formatter(LogFormatter(10.0))
-                axis.set_minor_formatter(LogFormatter(10.0, labelOnlyBase=False))
                 low, high = sorted(axis.get_view_interval())
-                if low > 0 and math.log10(high / low) > MINOR_DECADES:
+                decades = math.log10(high / low) if low > 0 else math.inf
+                axis.set_minor_formatter(_Distinct(decades / room))
+                if decades > MINOR_DECADES:
                     axis.set_minor_locator(NullLocator())
     buf = io.StringIO()
     # A run that blew up (|g| near 1e300) overflows the log axis' tick arithmetic; the
@@ -286,10 +325,14 @@ def overview(grid: dict[str, list[Standing]], winners: dict[str, str | None]) ->
     methods = sorted({st.integrator for stands in grid.values() for st in stands})
     with rc_context(RC):
         # Inches: the problem names at the left, the slanted method names above (about
-        # 0.06 inch a character at 8 pt), the legend below; a cell is 0.62 x 0.3.
+        # 0.06 inch a character at 8 pt), the legend below in as many columns of
+        # LEGEND_COLUMN inches as the figure holds (at least two); a cell is 0.62 x 0.3.
         chars = max(map(len, methods), default=0), max(map(len, problems), default=0)
-        left, top, bottom = 0.3 + 0.06 * chars[1], 0.4 + 0.055 * chars[0], 0.75
-        width = left + 0.2 + 0.62 * max(len(methods), 1)
+        left, top = 0.3 + 0.06 * chars[1], 0.4 + 0.055 * chars[0]
+        width = max(left + 0.2 + 0.62 * max(len(methods), 1), 0.3 + 2 * LEGEND_COLUMN)
+        entries = len(CLASS_COLORS) + 1
+        ncols = min(4, int((width - 0.3) / LEGEND_COLUMN))
+        bottom = 0.3 + 0.2 * math.ceil(entries / ncols)
         height = top + bottom + 0.3 * max(len(problems), 1)
         fig, axes = _figure(1, 1, width, height)
         ax = axes[0, 0]
@@ -316,7 +359,7 @@ def overview(grid: dict[str, list[Standing]], winners: dict[str, str | None]) ->
         handles.append(Rectangle((0, 0), 1, 1, fill=False, ec="k", lw=1.6))
         labels = [f"drift {k}" if k != "did not finish" else k for k in CLASS_COLORS]
         labels.append("cost winner (wall time)")
-        fig.legend(handles, labels, loc="lower center", ncols=4)
+        fig.legend(handles, labels, loc="lower center", ncols=ncols)
         fig.subplots_adjust(left=left / width, right=1.0 - 0.2 / width, top=1.0 - top / height,
                             bottom=bottom / height)
         return _svg(fig)
@@ -555,7 +598,7 @@ ENSEMBLE_PRECISION = (("final", "final error"), ("energy", "max rel. energy erro
 def ensemble_cost(runs, colors: dict, title: str) -> str:
     """Two panels per ensemble sweep: the median lane's final error (or max rel. energy
     error, or max |g|: :data:`ENSEMBLE_PRECISION`) against wall time per lane, with a band
-    from the best lane to the worst; and the fraction of lanes that failed against ``h``
+    and a bar at each run from the best lane to the worst; and the fraction of lanes that failed against ``h``
     (or rtol)."""
     with rc_context(RC):
         fig, axes = _figure(1, 2, 8.0, 3.0)
@@ -578,14 +621,16 @@ def ensemble_cost(runs, colors: dict, title: str) -> str:
             cost = done["wall_s"].astype(float) / done["lanes"].astype(float)
             cost_order = np.argsort(cost.to_numpy())
             done, cost = done.iloc[cost_order], cost.iloc[cost_order]
-            accuracy.fill_between(cost, _floor(done[f"{metric}_q0"]),
-                                  _floor(done[f"{metric}_q100"]), color=color, alpha=0.2, lw=0)
+            best, worst = _floor(done[f"{metric}_q0"]), _floor(done[f"{metric}_q100"])
+            accuracy.fill_between(cost, best, worst, color=color, alpha=0.2, lw=0)
+            # A bar at each run too: a method run at one setting has no band to fill.
+            accuracy.vlines(cost, best, worst, color=color, alpha=0.5, lw=2)
             accuracy.loglog(cost, _floor(done[f"{metric}_q50"]), marker=marker, ms=4, lw=1.0,
                             color=color, label=key)
             drawn = True
         if drawn:
             accuracy.set_xlabel("wall time per lane [s]")
-            accuracy.set_ylabel(f"median lane: {name}\n(band: best to worst)")
+            accuracy.set_ylabel(f"median lane: {name}\n(band and bars: best to worst)")
         else:
             _empty(accuracy, "no lane finished")
         failures.set_xlabel("h (or rtol)")

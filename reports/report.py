@@ -106,7 +106,7 @@ def _document(runs, current, ensembles, artifacts, series, scaling_data, draw, t
         doc.add(Para("Families (one hue each in the figures, a shade and marker per "
                      "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
                                                  for f, k in members.items()) + "."))
-    _headline(doc, current, colors, draw)
+    _headline(doc, current, ensembles, colors, draw)
     _history(doc, runs, draw)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
@@ -147,10 +147,13 @@ def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
 
 # --------------------------------------------------------------------------- headline
 
-def _headline(doc: Document, current: pd.DataFrame, colors: dict, draw) -> None:
+def _headline(doc: Document, current: pd.DataFrame, ensembles: pd.DataFrame, colors: dict,
+              draw) -> None:
+    """Winners among the single runs (``current``); ensembles have their own verdicts."""
     doc.heading(2, "Headline")
     if current.empty:
-        doc.add(Para("No runs."))
+        doc.add(Para("No single runs: the runs here are ensembles, whose verdicts are in "
+                     "their own section (Ensembles)." if not ensembles.empty else "No runs."))
         return
     problems = sorted(current["problem"].unique())
     subs = {p: current[current["problem"] == p] for p in problems}
@@ -158,7 +161,8 @@ def _headline(doc: Document, current: pd.DataFrame, colors: dict, draw) -> None:
     doc.add(Figure("headline", draw(figures.overview,
                                     {p: standings(sub) for p, sub in subs.items()},
                                     {p: c.integrator for p, c in costs.items()}),
-                   "Every problem and method: the cell's colour is the growth class of max |g| "
+                   "Every problem and method run singly (ensembles: their own section): "
+                   "the cell's colour is the growth class of max |g| "
                    "in the method's run at the longest horizon, its text max(|g|, |G v + g_t|) "
                    "of that run; a black frame marks the cost winner by wall time at matched "
                    "accuracy (none where the fastest are within each other's timing spread). "

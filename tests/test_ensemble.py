@@ -481,11 +481,14 @@ def test_the_ensemble_benchmark_sets_itself_up_as_a_worker_before_it_computes():
     assert "note: XLA started before" not in done.stderr
 
 
-def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdicts():
+def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdicts(tmp_path):
     """RATTLE at h = 0.22 on the pendulum loses most of 16 lanes before t = 20: the record's
     worst-lane metrics are over the lanes that finished, all alike (max energy error too),
-    each failed lane has its failure step and time, and a run with failed lanes cannot win
-    the report's verdicts on the strength of its survivors."""
+    each failed lane has its failure step and time, a run with failed lanes cannot win
+    the report's verdicts on the strength of its survivors, and the report quotes its
+    message (and, with no single run, says the headline has none)."""
+    from benchmarks.store import Store
+    from reports import build
     from reports.ensembles import _verdicts
 
     spec = RunSpec("pendulum", "rattle", h=0.22, t_end=20.0, lanes=16, seed=0)
@@ -508,6 +511,12 @@ def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdic
     verdict = _verdicts(runs)
     assert "rattle" not in verdict and verdict.count("genalpha") == 2
     assert _verdicts(runs.iloc[:1]) == "Verdicts: no run finished every lane."
+    with Store(tmp_path / "driftbench.sqlite") as st:
+        st.add(st.begin("unit"), record)
+    md = build(tmp_path / "driftbench.sqlite", tmp_path)[0].read_text()
+    assert "No single runs: the runs here are ensembles" in md
+    assert (f"Runs with failed lanes: rattle h=0.22: {int(failed.sum())} of 16 lanes "
+            f"failed; the first, lane ") in md
 
 
 def _pendulum_by_angle(q0, v0, t, L=1.0, gravity=9.81):

@@ -366,3 +366,16 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_here():
     with figures.Drawing(jobs=1) as draw:
         with pytest.raises(KeyError):
             svg_text(Figure("broken", draw(figures.drift, [{"label": "x"}], colors, "p")))
+
+
+def test_tick_labels_off_the_decades_are_distinct_and_do_not_crowd():
+    """An axis within one decade gets ticks at even steps, which one digit would label
+    alike; labels closer than the gap to a decade or to the last label are left out."""
+    from reports.figures import _Distinct
+
+    values = [2.6e-3, 2.8e-3, 3.0e-3, 3.2e-3, 3.4e-3, 9.5e-3]
+    labels = _Distinct(0.05).format_ticks(values)
+    shown = [(x, label) for x, label in zip(values, labels) if label]
+    assert [label for _, label in shown] == ["2.6e-03", "3.0e-03", "3.4e-03"]
+    assert all(np.log10(b / a) >= 0.05 for (a, _), (b, _) in zip(shown, shown[1:]))
+    assert _Distinct(0.05).format_ticks([2e-4, 5e-4]) == ["2e-04", "5e-04"]
