@@ -29,8 +29,9 @@ from problems import Case
 from reports import build as build_report
 
 
-def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
-          h: Iterable[float] = (), rtol: Iterable[float] = (), atol: Iterable[float] = (),
+def sweep(problems: str | Case | Iterable[str | Case], integrators: str | Iterable[str], *,
+          h: float | Iterable[float] = (), rtol: float | Iterable[float] = (),
+          atol: float | Iterable[float] = (),
           t_end: float | None = None, load: Iterable[str] = (), out: str | Path | None = None,
           report: bool = False, jobs: int | None = None, cluster: str | None = None,
           timeout: float | None = None, repeats: int = 3,
@@ -39,13 +40,13 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
 
     Parameters
     ----------
-    problems : iterable of str or Case
+    problems : str, Case or iterable of them
         Problem specs (``"pendulum"``, ``"chain:N=16"``, a loaded problem's name) or
         :class:`problems.Case` objects built with :func:`problems.make_case` (run under
         their names, which must not be registered problems' names).
-    integrators : iterable of str
+    integrators : str or iterable of str
         Integrator specs (``"rattle"``, ``"lobatto3ab3:newton_tol=1e-12"``).
-    h, rtol, atol : iterable of float
+    h, rtol, atol : float or iterable of float
         Step sizes for fixed-step methods; tolerances for adaptive ones. Empty: each
         method's default.
     t_end : float, optional
@@ -83,14 +84,19 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
     """
     if report and out is None:
         raise InputError("report=True needs out= (the folder the report is written to)")
-    problems = list(problems)
+    problems, integrators = _several(problems), _several(integrators)
     cases = [p for p in problems if isinstance(p, Case)]
     specs = [p.name if isinstance(p, Case) else p for p in problems]
     user_code(load, cases)  # so that expand resolves what the user registered
+    settings = {name: _numbers(name, values)
+                for name, values in (("h", h), ("rtol", rtol), ("atol", atol))}
+    if t_end is not None:
+        if not isinstance(t_end, (int, float, str)):
+            raise InputError(f"t_end = {t_end!r:.60}: one number, the horizon")
+        t_end = _numbers("t_end", t_end)[0]
     try:
-        runs = expand(specs, list(integrators), [float(x) for x in h],
-                      [float(x) for x in rtol], [float(x) for x in atol],
-                      None if t_end is None else float(t_end))
+        runs = expand(specs, integrators, settings["h"], settings["rtol"], settings["atol"],
+                      t_end)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     with tempfile.TemporaryDirectory(prefix="driftbench-sweep-") as tmp:
@@ -101,3 +107,18 @@ def sweep(problems: Iterable[str | Case], integrators: Iterable[str], *,
         if report:
             build_report(folder / "driftbench.sqlite", folder)
     return pd.DataFrame([r.row for r in records], columns=list(COLUMNS))
+
+
+def _several(values) -> list:
+    """``values`` as a list: one name or case alone is a list of one, not of characters."""
+    return [values] if isinstance(values, (str, Case)) else list(values)
+
+
+def _numbers(name: str, values) -> list[float]:
+    """The floats of a setting given as one number or several, or InputError naming it."""
+    try:
+        return [float(x) for x in
+                ([values] if isinstance(values, (int, float, str)) else values)]
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} = {values!r:.60}: not a number or a list of numbers "
+                         f"({exc})") from None

@@ -31,7 +31,8 @@ starts, with exit status 2. Runs that fail are data: they are recorded with thei
 and the command still exits 0. Results that cannot all be written (a full disk, a store
 damaged meanwhile) give one line and exit status 2 once every run has ended; every run's
 row is in ``runs.csv`` all the same. An interrupted invocation (Ctrl-C, ``SIGTERM``), also
-while it validates, stops its workers, keeps every finished run and exits with status 130.
+while it validates or writes the report, stops its workers, keeps every finished run and
+exits with status 130 (the one line says how to write the report where it was cut short).
 """
 
 from __future__ import annotations
@@ -257,32 +258,45 @@ def main(argv=None) -> int:
 
         records = run_specs(runs, args.out, args.jobs, resume=args.resume,
                             allow_large=args.allow_large, **options)
+        counts: dict[str, int] = {}
+        for record in records:
+            counts[record.row["status"]] = counts.get(record.row["status"], 0) + 1
+        summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+        print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
+        if not args.no_report:
+            store = args.out / "driftbench.sqlite"
+            try:
+                for path in build_report(store, args.out,
+                                         **({"targets": targets} if targets else {})):
+                    print(f"wrote {path}")
+            except OSError as exc:  # a full disk: the runs are written, the report is not
+                print(f"error: the report under {args.out} could not be written: "
+                      f"{one_line(exc)}", file=sys.stderr)
+                return EXIT_INPUT
+            except Interrupted:
+                print(f"interrupted ({_received[0]}) while writing the report: every run "
+                      f"is in {args.out}; python -m reports --db {store} --out {args.out} "
+                      f"writes it", file=sys.stderr)
+                return EXIT_INTERRUPTED
+        return 0
     except (InputError, Interrupted) as exc:
         if not _received:
             print(f"error: {one_line(exc)}", file=sys.stderr)
             return EXIT_INPUT
-        print(f"interrupted ({_received[0]}): the runs that finished are in {args.out}; "
-              f"run again with --resume to finish the rest", file=sys.stderr)
+        where = (f"the runs that finished are in {args.out}"
+                 if (args.out / "runs.partial.csv").exists()
+                 or (args.out / "runs.csv").exists() else "no run had finished")
+        print(f"interrupted ({_received[0]}): {where}; run again with --resume to finish "
+              f"the rest", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-    counts: dict[str, int] = {}
-    for record in records:
-        counts[record.row["status"]] = counts.get(record.row["status"], 0) + 1
-    summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
-    if not args.no_report:
-        try:
-            for path in build_report(args.out / "driftbench.sqlite", args.out,
-                                     **({"targets": targets} if targets else {})):
-                print(f"wrote {path}")
-        except OSError as exc:  # a full disk: the runs are written, the report is not
-            print(f"error: the report under {args.out} could not be written: "
-                  f"{one_line(exc)}", file=sys.stderr)
-            return EXIT_INPUT
-    return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    # Past main, shutting down (the workers' and JAX's exit hooks) is not to be
+    # interrupted: a second Ctrl-C there printed a traceback and lost the exit status.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)

@@ -13,6 +13,7 @@ import io
 import math
 import multiprocessing
 import os
+import signal
 import sys
 import textwrap
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -92,7 +93,8 @@ class Drawing:
                 done.set_exception(exc)
             return done
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"))
+            self._pool = ProcessPoolExecutor(self.jobs, initializer=_deaf_to_ctrl_c,
+                                             mp_context=multiprocessing.get_context("spawn"))
         return self._pool.submit(fn, *args)
 
     def __enter__(self) -> "Drawing":
@@ -101,6 +103,13 @@ class Drawing:
     def __exit__(self, *exc) -> None:
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=exc[0] is not None)
+
+
+def _deaf_to_ctrl_c() -> None:
+    """A drawing worker ignores Ctrl-C, which a terminal sends to the whole process group:
+    the process that builds the report decides what an interrupt stops, and shuts the
+    workers down (no traceback from each of them)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def palette(families: dict[str, list[str]]) -> dict[str, tuple]:

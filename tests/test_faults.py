@@ -370,7 +370,27 @@ def test_ctrl_c_during_validation_exits_130(tmp_path):
     os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
-    assert "interrupted (SIGINT)" in err and "Traceback" not in err
+    assert "interrupted (SIGINT): no run had finished" in err and "Traceback" not in err
+
+
+def test_ctrl_c_while_the_report_is_written_keeps_the_runs_and_exits_130(
+        tmp_path, monkeypatch, capsys):
+    """The signal handlers stay in place until the report is written: an interrupt there
+    is one line and status 130, not a traceback (SIGINT) or a silent death that left the
+    figure workers behind (SIGTERM)."""
+    import reports
+
+    def interrupted(*args, **kwargs):
+        run._interrupt(signal.SIGTERM, None)
+
+    monkeypatch.setattr(reports, "build", interrupted)
+    assert run.main([*GOOD[:-1], "--out", str(tmp_path)]) == 130  # with the report
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].startswith(
+        "interrupted (SIGTERM) while writing the report: every run is in ")
+    assert f"python -m reports --db {tmp_path / 'driftbench.sqlite'}" in err
+    with open(tmp_path / "runs.csv") as fh:
+        assert [r["status"] for r in csv.DictReader(fh)] == ["ok"]
 
 
 @pytest.mark.slow

@@ -193,3 +193,17 @@ def test_a_suites_ensembles_take_the_seed_and_its_single_runs_stay_single(tmp_pa
         [(0.1, None, None, None), (0.05, 4, 5, "cpu")]
     runs, _, _ = run.plan(run.parser().parse_args(["--suite", str(suite), "--ensemble", "8"]))
     assert [(r.lanes, r.seed) for r in runs] == [(8, 0), (8, 1)]
+
+
+def test_the_python_api_takes_one_name_or_number_alone_and_names_a_bad_setting():
+    from benchmarks.api import sweep
+    from benchmarks.records import InputError
+
+    with pytest.raises(InputError, match="^unknown problem 'pendulm'"):
+        sweep("pendulm", "rattle")
+    with pytest.raises(InputError, match=r"^h = \['abc'\]: not a number"):
+        sweep("pendulum", "rattle", h=["abc"])
+    with pytest.raises(InputError, match="^t_end = 'long': not a number"):
+        sweep("pendulum", "rattle", t_end="long")
+    runs = sweep("pendulum", "rattle", h=0.1, t_end=0.5, jobs=1, log=None)
+    assert list(runs["h"]) == [0.1] and list(runs["status"]) == ["ok"]
