@@ -182,7 +182,9 @@ def _where_defined(message: str, exc: Exception, run: PlannedRun) -> str:
     the error arose in none of the user's frames (a transformation JAX replays from a
     traced program, such as ``vmap`` of a callback)."""
     name = run.problem.name
-    if problems.user_frame(exc) or problems.origin(name) == "built-in":
+    # A case of the Python API is registered by a factory of ours: no file of the user's.
+    if problems.user_frame(exc) or problems.ORIGINS.get(name) in (None, "built-in",
+                                                                  "Python API"):
         return message
     return located(f"in problem {name!r}: {message}", problems.REGISTRY.get(name))
 
