@@ -173,7 +173,7 @@ def _svg(fig: Figure) -> str:
         box = ax.get_position()
         for axis, inches in ((ax.xaxis, box.width * width), (ax.yaxis, box.height * height)):
             if axis.get_scale() == "log":
-                room = inches / LABEL_INCHES[axis is ax.xaxis]
+                room = max(inches / LABEL_INCHES[axis is ax.xaxis], 1.0)
                 axis.set_major_locator(LogLocator(10.0, numticks=max(2, int(room)) + 1))
                 axis.set_major_formatter(LogFormatter(10.0))
                 low, high = sorted(axis.get_view_interval())
@@ -607,8 +607,8 @@ ENSEMBLE_PRECISION = (("final", "final error"), ("energy", "max rel. energy erro
 def ensemble_cost(runs, colors: dict, title: str) -> str:
     """Two panels per ensemble sweep: the median lane's final error (or max rel. energy
     error, or max |g|: :data:`ENSEMBLE_PRECISION`) against wall time per lane, with a band
-    and a bar at each run from the best lane to the worst; and the fraction of lanes that failed against ``h``
-    (or rtol)."""
+    and a bar at each run from the best lane to the worst; and the fraction of lanes that
+    failed against ``h`` (or rtol)."""
     with rc_context(RC):
         fig, axes = _figure(1, 2, 8.0, 3.0)
         accuracy, failures = axes[0]
