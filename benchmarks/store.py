@@ -322,21 +322,21 @@ def identify(path) -> int:
                         f"its tables are {', '.join(sorted(tables)) or 'none'}")
                 raise ForeignFile(f"{path}: not a driftbench results store (an SQLite file "
                                   f"of another program: {what}); {RECOVER}")
-            missing = [f"table {table}" if table not in tables else f"column {table}.{c}"
-                       for table, columns in CORE_COLUMNS.items()
-                       for c in (columns if table not in tables else
-                                 set(columns) - set(_table_columns(con, table)))][:1]
-            problems = [f"no {missing[0]}"] if missing else \
-                [r[0] for r in con.execute("PRAGMA quick_check")]
+            for table, columns in CORE_COLUMNS.items():
+                lacks = f"table {table}" if table not in tables else next(
+                    (f"column {table}.{c}" for c in columns
+                     if c not in _table_columns(con, table)), None)
+                if lacks:
+                    raise DamagedStore(f"{path}: damaged results store (no {lacks}); "
+                                       f"{RECOVER}")
+            problems = [r[0] for r in con.execute("PRAGMA quick_check")]
         finally:
             con.close()
     except sqlite3.DatabaseError as exc:
         raise DamagedStore(f"{path}: damaged results store (SQLite: {exc}); "
                            f"{RECOVER}") from None
     if problems != ["ok"]:
-        raise DamagedStore(f"{path}: damaged results store ("
-                           f"{'' if problems[0].startswith('no ') else 'quick_check: '}"
-                           f"{problems[0]}"
+        raise DamagedStore(f"{path}: damaged results store (quick_check: {problems[0]}"
                            f"{f' and {len(problems) - 1} more' if len(problems) > 1 else ''}"
                            f"); {RECOVER}")
     _CHECKED[state] = app
@@ -521,7 +521,7 @@ def _reader(db) -> sqlite3.Connection:
             con = memory
         migrate(con, str(path))
     except BaseException:
-        con.close()  # and so no empty -wal and -shm files are left beside a refused store
+        con.close()  # a refused store's connection too
         raise
     return con
 

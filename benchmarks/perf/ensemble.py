@@ -76,9 +76,10 @@ from benchmarks.perf.processes import (compile_yardstick, like_a_worker, run_pro
 from benchmarks.perf.throughput import run_c
 from benchmarks.plan import DEVICES, ENSEMBLE_GRID, jax_device
 from benchmarks.records import CommandParser
+from benchmarks.suites import RANGES
 from integrators.base import Grid
 from linalg.dense import solve as dense_solve
-from problems.ensemble import MAX_LANES, draw
+from problems.ensemble import draw
 from problems.spec import SpecError
 
 #: Lane-steps per second over one trajectory's steps per second, at :data:`BAR_LANES` lanes
@@ -339,17 +340,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=DEVICES, default="auto",
                         help="where the ensembles run (auto: a GPU where JAX sees one)")
     args = parser.parse_args(argv)
-    for name, values, ok, must in [
-            ("--lanes", args.lanes, lambda x: 1 <= x <= MAX_LANES, f"1 to {MAX_LANES}"),
-            ("--memory-lanes", [args.memory_lanes], lambda x: 1 <= x <= MAX_LANES,
-             f"1 to {MAX_LANES}"),
-            ("--steps", [args.steps], lambda x: 1 <= x < math.inf, "at least 1"),
-            ("--memory-steps", args.memory_steps, lambda x: 1 <= x < math.inf, "at least 1"),
-            ("--h", [args.h], lambda x: 0 < x < math.inf, "positive and finite"),
-            ("--memory-h", [args.memory_h], lambda x: 0 < x < math.inf,
-             "positive and finite"),
-            ("--repeats", [args.repeats], lambda x: x >= 1, "at least 1"),
-            ("--budget", [args.budget], lambda x: x > 0, "positive")]:
+    # The command line's and the suite files' ranges where they mean the same.
+    steps = (lambda x: 1 <= x < math.inf, "at least 1")
+    for name, values, (ok, must) in [
+            ("--lanes", args.lanes, RANGES["ensemble"]),
+            ("--memory-lanes", [args.memory_lanes], RANGES["ensemble"]),
+            ("--steps", [args.steps], steps), ("--memory-steps", args.memory_steps, steps),
+            ("--h", [args.h], RANGES["h"]), ("--memory-h", [args.memory_h], RANGES["h"]),
+            ("--repeats", [args.repeats], RANGES["repeats"]),
+            ("--budget", [args.budget], RANGES["budget"])]:
         bad = [x for x in values if not ok(x)]
         if bad:
             parser.error(f"{name} {bad[0]:g} must be {must}")
