@@ -11,7 +11,9 @@
 It is the command line's batch (:func:`benchmarks.batch.run_specs`) with the same
 isolation, time limits, engines and progress lines; the columns are those of ``runs.csv``
 (:data:`benchmarks.records.COLUMNS`), and the accuracy columns equal the command line's
-for the same runs, bit for bit.
+for the same runs, bit for bit. A plain script may call it without an ``if __name__ ==
+"__main__"`` guard: neither the runs' worker processes (:mod:`benchmarks.pool`) nor the
+report's drawing processes (:class:`reports.figures.Drawing`) import the caller's script.
 """
 
 from __future__ import annotations
@@ -50,7 +52,9 @@ def sweep(problems: str | Case | Iterable[str | Case], integrators: str | Iterab
         Step sizes for fixed-step methods; tolerances for adaptive ones. Empty: each
         method's default.
     t_end : float, optional
-        The horizon (default: each problem's own).
+        The horizon (default: each problem's own): the ``t_end`` parameter of every
+        problem whose factory takes one (:func:`problems.at_horizon`); other problems,
+        and cases, run to it and are scored only within their reference's span.
     load : iterable of str
         Files or modules that register problems or integrators (``--load``).
     out : str or Path, optional

@@ -3,7 +3,8 @@
 :func:`audit` evaluates the functions of a loaded problem's :class:`~problems.System` at its
 initial values, the way the integrators will (under JAX, with autodiff), and refuses what
 would make every run meaningless: a wrong shape, a value that is not finite, a mass matrix
-that is not symmetric positive definite, a function that JAX cannot trace. The message
+that is not symmetric positive definite, a function that JAX cannot trace, constraints
+that read ``t`` in a system declared scleronomic (:func:`check_rheonomic`). The message
 names the function, the file and line where it is defined (for a constant mass, those of
 the problem's factory), and what is wrong.
 
@@ -33,8 +34,19 @@ TRACER_ADVICE = ("it is not traceable by JAX: it converts a traced value to a Py
 #: Relative asymmetry of a mass matrix accepted as round-off.
 SYMMETRY_TOL = 1e-12
 #: Largest mass given by ``kinetic`` that is formed densely to check it (eigenvalues);
-#: above, its blocks are checked by their Cholesky factors.
+#: above, its blocks are checked by their Cholesky factors. Also the largest system whose
+#: sampled states are projected onto ``g = 0`` by dense least squares (:func:`check_rheonomic`).
 DENSE_AUDIT_MAX = 2000
+#: Random states, besides the initial one, at which :func:`check_rheonomic` evaluates g_t.
+TIME_SAMPLES = 4
+#: Relative noise on ``q0`` of those states before they are projected onto ``g(q, t) = 0``.
+SAMPLE_NOISE = 1e-3
+#: Gauss-Newton steps of that projection (quadratic convergence from a nearby state).
+SAMPLE_STEPS = 8
+#: ``max |g_t| (t_end - t0)`` at or below this fraction of ``g``'s own size over the
+#: horizon (``max_i sum_j |G_ij| (|q_j| + (t_end - t0) |v_j|)`` at the initial state) is
+#: round-off of terms in ``t`` that cancel, not a time dependence.
+RHEONOMIC_TOL = 1e-10
 
 
 def explain(exc: BaseException) -> str:
@@ -84,8 +96,91 @@ def _check(case, args, label: str, func, call, shape: tuple[int, ...]) -> np.nda
     return value
 
 
-def audit(case) -> None:
-    """Check the functions of ``case.system`` at ``(t0, q0, v0)``.
+def _time_rates(case) -> tuple[np.ndarray, np.ndarray, float]:
+    """``max_i |g_t|`` at the initial state and at :data:`TIME_SAMPLES` random states at
+    random times of the horizon (a fixed seed: the audit is repeatable), the times, and
+    ``g``'s own size over the horizon (:data:`RHEONOMIC_TOL`).
+
+    The random states are ``q0`` with noise, projected onto ``g(q, t) = 0`` by Gauss-Newton
+    with the minimum-norm step (dense least squares), all in one compiled call; above
+    :data:`DENSE_AUDIT_MAX` coordinates they are left next to the manifold unprojected.
+    ``g_t`` is one forward derivative of ``g`` in ``t``; a non-finite one (a state outside
+    ``g``'s domain) counts as 0."""
+    s = case.system
+    g = s.constraints
+    rng = np.random.default_rng(0)
+    q0 = np.asarray(case.q0, np.float64)
+    size = max(float(np.sqrt(np.mean(q0 ** 2))), 1.0)
+    q = np.concatenate([q0[None], q0 + SAMPLE_NOISE * size
+                        * rng.standard_normal((TIME_SAMPLES, q0.size))])
+    t = np.concatenate([[case.t0], case.t0 + (case.t_end - case.t0) * rng.random(TIME_SAMPLES)])
+    dense = s.n <= DENSE_AUDIT_MAX
+
+    def settle(x, u):
+        def step(_, x):
+            return x - jnp.linalg.lstsq(jax.jacfwd(g)(x, u), jnp.asarray(g(x, u)))[0]
+        return jax.lax.fori_loop(0, SAMPLE_STEPS, step, x) if dense else x
+
+    def rate(x, u):
+        return jnp.max(jnp.abs(jax.jvp(lambda w: jnp.asarray(g(x, w)), (u,),
+                                       (jnp.ones_like(u),))[1]))
+
+    def probe(q, t):
+        # The initial state is consistent already: only the random ones are projected.
+        q = q.at[1:].set(jax.vmap(settle)(q[1:], t[1:]))
+        return jax.vmap(rate)(q, t)
+
+    rates = np.asarray(jax.jit(probe)(jnp.asarray(q), jnp.asarray(t)))
+    span = case.t_end - case.t0
+    args = jnp.asarray(q0), jnp.asarray(case.t0, jnp.float64)
+    v0 = jnp.asarray(case.v0, jnp.float64)
+    if dense:
+        scale = float(jax.jit(lambda q, u, v: jnp.max(jnp.abs(jax.jacfwd(g)(q, u))
+                                                      @ (jnp.abs(q) + span * jnp.abs(v))))(
+            *args, v0))
+    else:
+        scale = float(case.mech.rounding(*args)) + span * float(case.mech.rounding(*args, v0))
+    return np.where(np.isfinite(rates), rates, 0.0), t, scale
+
+
+def check_rheonomic(case, notes: list[str] | None = None) -> None:
+    """Refuse constraints that depend on ``t`` in a system declared scleronomic.
+
+    A scleronomic system's ``g_t`` is taken as 0 everywhere (:meth:`Mechanics.g_t`): with
+    a ``g`` that reads ``t`` the velocities are projected onto the wrong manifold and the
+    energy is scored as if conserved, wrong numbers with status ok. ``g_t = dg/dt`` is
+    evaluated at the initial state and at random consistent states and times
+    (:func:`_time_rates`); it must vanish there, up to :data:`RHEONOMIC_TOL`. The converse,
+    ``rheonomic=True`` with ``g_t = 0`` at every sample, costs only the energy error (the
+    run is scored by its energy balance instead): a note is appended to ``notes``.
+
+    Raises
+    ------
+    AuditError
+        Led by the ``file:line`` of ``constraints``, with the largest ``g_t`` found and
+        where, and what to set.
+    """
+    s = case.system
+    if s.m == 0:
+        return
+    rates, times, scale = _time_rates(case)
+    worst = int(np.argmax(rates))
+    moving = rates[worst] > 0.0 and rates[worst] * (case.t_end - case.t0) > RHEONOMIC_TOL * scale
+    if moving and not s.rheonomic:
+        raise _refuse(case, f"constraints(q, t) of problem {case.name!r} depend on t "
+                            f"(|g_t| = {rates[worst]:.3g} at t = {times[worst]:.6g}) but its "
+                            f"System is declared scleronomic: set rheonomic=True in System(...) "
+                            f"(without it g_t is taken as 0)", s.constraints)
+    if s.rheonomic and not moving and notes is not None:
+        notes.append(located(f"note: problem {case.name!r} sets rheonomic=True but g_t = 0 "
+                             f"at {len(rates)} sampled states and times: if its constraints "
+                             f"do not read t, leave rheonomic out (a rheonomic system gets its "
+                             f"energy balance scored, not its energy)", s.constraints))
+
+
+def audit(case, notes: list[str] | None = None) -> None:
+    """Check the functions of ``case.system`` at ``(t0, q0, v0)``, and that they depend on
+    ``t`` as declared (:func:`check_rheonomic`, whose notes go to ``notes``).
 
     Raises
     ------
@@ -146,3 +241,4 @@ def audit(case) -> None:
                lambda q, v, t: s.forces(t, q, v), (n,))
     for name, func in s.invariants.items():
         _check(case, args, f"invariant {name!r}(q, v)", func, lambda q, v, t: func(q, v), ())
+    check_rheonomic(case, notes)

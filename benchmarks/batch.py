@@ -60,6 +60,7 @@ import io
 import math
 import sqlite3
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterable, TextIO
@@ -95,33 +96,141 @@ def study_target(name: str) -> str:
     return STUDIES[name]
 
 
+def time_left(elapsed: float, finished: list[tuple[bool, float]], cold_left: int,
+              warm_left: int, running: list[tuple[bool, float]]) -> float | None:
+    """Seconds the batch has left, estimated from the tasks finished so far.
+
+    A task is *cold* when it is the first of its problem and method (its worker compiles
+    the method's programs), *warm* when one of them ran before (a sweep's later step
+    sizes reuse the programs). With ``c`` and ``w`` the mean durations of the finished
+    cold and warm tasks (``w = c`` until a warm one has finished, ``c = w`` the other way
+    round), the work left is ``W = cold_left c + warm_left w`` plus, for each running
+    task, its mean less the time it has run (at least nothing); the engine has done
+    ``D`` seconds of task time in ``elapsed`` seconds, so the time left is
+    ``W elapsed / D``, which carries the parallelism actually achieved (workers busy,
+    the machine's load) without knowing the number of workers. Separating cold from warm
+    tasks matters at the start: a suite's first tasks are nearly all set-up, and a rate
+    from them alone overestimates the rest several times.
+
+    Parameters
+    ----------
+    elapsed : float
+        Seconds since the batch started.
+    finished : list of (bool, float)
+        Each finished task: whether it was cold, and its duration in seconds.
+    cold_left, warm_left : int
+        Tasks not yet started that will be cold and warm.
+    running : list of (bool, float)
+        Each running task: whether it is cold, and how long it has run.
+
+    Returns
+    -------
+    float or None
+        ``None`` until a task has finished.
+    """
+    cold = [d for is_cold, d in finished if is_cold]
+    warm = [d for is_cold, d in finished if not is_cold]
+    done = sum(cold) + sum(warm)
+    if not finished or done <= 0.0:
+        return None
+    c = sum(cold) / len(cold) if cold else sum(warm) / len(warm)
+    w = sum(warm) / len(warm) if warm else c
+    work = cold_left * c + warm_left * w
+    work += sum(max((c if is_cold else w) - ran, 0.0) for is_cold, ran in running)
+    return work * elapsed / done
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` for a person: ``42 s``, ``3 min``, ``1 h 05 min``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    minutes = round(seconds / 60)
+    return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"
+
+
 class Progress:
     """A progress bar on a terminal (tqdm) and one log line per finished run.
 
-    The bar shows the runs in progress and tqdm's estimate of the time left; without a
-    terminal only the log lines are written.
+    The bar shows the tasks done of all, the time elapsed, the estimate of the time left
+    (:func:`time_left`, from the tasks finished so far, cold and warm apart), the share of
+    the finished runs' time that went to set-up (compiling, on a cold cache), and the runs
+    in progress. Without a terminal (a file, a pipe, a test) only the log lines are
+    written, one per task, as plain text.
+
+    ``keys`` maps each task's id to what makes its runs share compiled programs (its
+    problem and method; a task without one is cold on its own).
     """
 
-    def __init__(self, total: int, log: TextIO | None, bar: bool | None = None):
+    def __init__(self, total: int, log: TextIO | None, bar: bool | None = None,
+                 keys: dict[int, object] | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.total, self.log, self.count = total, log, 0
-        self.running: dict[int, str] = {}
+        self.clock = clock
+        self.began = self.clock()
+        self.keys = keys or {}
+        self.started_keys: set = set()
+        self.running: dict[int, tuple[str, bool, float]] = {}
+        self.finished: list[tuple[bool, float]] = []
+        self._done_ids: set[int] = set()
+        self.setup = self.spent = 0.0
         if bar is None:
             bar = log is not None and hasattr(log, "isatty") and log.isatty()
         self.bar = None
         if bar and total:
-            self.bar = tqdm(total=total, file=log, unit="run", dynamic_ncols=True,
-                            leave=True, smoothing=0.1)
+            self.bar = tqdm(total=total, file=log, unit="run", dynamic_ncols=True, leave=True,
+                            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}"
+                                       "{postfix}]")
+
+    def _key(self, task_id: int) -> object:
+        key = self.keys.get(task_id)
+        return ("task", task_id) if key is None else key
 
     def start(self, task_id: int, label: str) -> None:
-        self.running[task_id] = label
+        key = self._key(task_id)
+        cold = key not in self.started_keys
+        self.started_keys.add(key)
+        self.running[task_id] = (label, cold, self.clock())
         self._postfix()
 
-    def _postfix(self) -> None:
-        if self.bar is not None:
-            self.bar.set_postfix_str(" | ".join(self.running.values())[:160], refresh=True)
+    def left(self) -> float | None:
+        """Seconds left (:func:`time_left`) now."""
+        now = self.clock()
+        return time_left(now - self.began, self.finished, *self._waiting(),
+                         [(cold, now - since) for _, cold, since in self.running.values()])
 
-    def finish(self, task_id: int, line: str) -> None:
-        self.running.pop(task_id, None)
+    def _waiting(self) -> tuple[int, int]:
+        """Tasks not started yet that will be cold, and warm."""
+        cold_keys = set()
+        warm = 0
+        for task_id in self.keys:
+            if task_id in self.running or task_id in self._done_ids:
+                continue
+            key = self._key(task_id)
+            if key in self.started_keys or key in cold_keys:
+                warm += 1
+            else:
+                cold_keys.add(key)
+        return len(cold_keys), warm
+
+    def _postfix(self) -> None:
+        if self.bar is None:
+            return
+        left = self.left()
+        parts = ["estimating" if left is None else f"about {_duration(left)} left"]
+        if self.spent > 0:
+            parts.append(f"set-up {100 * self.setup / self.spent:.0f} % of run time")
+        parts.append(" | ".join(label for label, _, _ in self.running.values())[:120])
+        self.bar.set_postfix_str(", ".join(p for p in parts if p), refresh=True)
+
+    def finish(self, task_id: int, line: str, setup_s: float | None = None) -> None:
+        """Task ``task_id`` ended (``line`` says how); ``setup_s`` is its run's set-up."""
+        label, cold, since = self.running.pop(task_id, ("", True, self.clock()))
+        duration = self.clock() - since
+        self._done_ids.add(task_id)
+        self.finished.append((cold, duration))
+        if isinstance(setup_s, (int, float)) and math.isfinite(setup_s) and duration > 0:
+            self.setup += min(setup_s, duration)
+            self.spent += duration
         self.count += 1
         self.note(f"[{self.count}/{self.total}] {line}")
         if self.bar is not None:
@@ -193,8 +302,13 @@ def engine(jobs: int | None, cluster: str | None) -> Executor:
     if cluster is not None:
         if jobs is not None:
             raise InputError("give either jobs (the local pool) or a cluster, not both")
-        # Imported here: Dask takes about a second to import, and only its engine needs it.
-        from benchmarks.cluster import Cluster
+        # Imported here: Dask takes about a second to import, only its engine needs it, and
+        # it is an optional extra.
+        try:
+            from benchmarks.cluster import Cluster
+        except ModuleNotFoundError as exc:
+            raise InputError(f"a cluster needs Dask's distributed ({exc.name} is not "
+                             f"installed): pip install 'driftbench[cluster]'") from None
 
         return Cluster(cluster)
     jobs = len(usable_cpus()) if jobs is None else jobs
@@ -247,7 +361,8 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
               timeout: float | None = None, resume: bool = False,
               studies: Iterable[str] = (), grid_options: dict | None = None,
               load: Iterable[str] = (), cases=(), log: TextIO | None | str = "stderr",
-              progress: bool | None = None, allow_large: bool = False) -> list[Record]:
+              progress: bool | None = None, allow_large: bool = False,
+              start_notes: Iterable[str] = ()) -> list[Record]:
     """Run ``specs`` on an engine, store every run and write ``out/runs.csv``.
 
     Parameters
@@ -295,6 +410,10 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     allow_large : bool
         Lift the size limit of problems (:func:`problems.check_size`) and the step limit
         :data:`STEP_LIMIT`.
+    start_notes : iterable of str
+        Lines for ``log`` once the input is validated and the output folder taken, just
+        before the first task starts (none when no task is left), so that bad input still
+        gets its one line alone.
 
     Returns
     -------
@@ -351,13 +470,15 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
             with store:
                 return _run_batch(executor, store, runs, (loaded, blobs), out, suite=suite,
                                   repeats=repeats, timeout=timeout, resume=resume,
-                                  targets=targets, log=log, progress=progress)
+                                  targets=targets, log=log, progress=progress,
+                                  start_notes=start_notes)
         finally:
             lock.release()
 
 
 def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, out, *,
-               suite, repeats, timeout, resume, targets, log, progress) -> list[Record]:
+               suite, repeats, timeout, resume, targets, log, progress,
+               start_notes=()) -> list[Record]:
     """The body of :func:`run_specs` once the input is planned, the folder locked and the
     store open; ``code`` is the loaded sources and the pickled cases."""
     loaded, blobs = code
@@ -384,13 +505,18 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
         session = store.begin(suite, timing_note=executor.note(repeats))
     except sqlite3.Error as exc:  # before any run: nothing is lost
         raise InputError(one_line(f"{store.path}: cannot be written: {exc}")) from None
-    bar = Progress(len(tasks) + len(targets), log, progress)
+    # The studies' tasks (ids -1, -2, ...) share nothing compiled with other tasks.
+    bar = Progress(len(tasks) + len(targets), log, progress,
+                   keys={**{-1 - k: None for k in range(len(targets))},
+                         **{task.id: task.affinity for task in tasks}})
     if n_unique < len(runs):
         bar.note(f"{len(runs) - n_unique} of {len(runs)} runs repeat an earlier one "
                  f"(same problem, parameters, method, options and horizon) and run once")
     if skipped:
         bar.note(f"resuming: {len(skipped)} of {len(runs)} runs are finished in "
                  f"{store.path} and are not run again")
+    for line in start_notes if tasks or targets else ():
+        bar.note(line)
     csv_path, partial = out / "runs.csv", out / "runs.partial.csv"
     failures: list[str] = []
 
@@ -437,7 +563,8 @@ def _run_batch(executor: Executor, store: Store, runs: list[PlannedRun], code, o
             except (sqlite3.Error, OSError) as exc:
                 fail(f"{store.path}: storing {task.label} failed ({exc}); it and every later "
                      f"run are in {csv_path} only")
-        bar.finish(task.id, f"{runs[i].label}: {_summary(record.row)}")
+        bar.finish(task.id, f"{runs[i].label}: {_summary(record.row)}",
+                   record.row.get("setup_s"))
 
     # Studies go first, beside the runs: each is one long task, and started last it would
     # leave the other workers idle while it ends.

@@ -52,8 +52,13 @@ gate that compared nothing, or compared against NaN (every comparison with NaN i
 would pass whatever the code does. The last line of output says how many runs were
 compared.
 
-Exit status: 0 when nothing gating regressed (or after ``--update``), 1 on a regression,
-2 on bad input (unknown suite, unreadable, empty, malformed or another suite's baseline).
+A run that ends ``error`` or ``timeout`` has no metrics to gate or record: the gate then
+fails whatever the comparison says, and ``--update`` writes no baseline (a baseline of such
+a run would let the same error pass next time); one line counts them.
+
+Exit status: 0 when nothing gating regressed and every run ended ``ok`` or ``failed`` (or
+after ``--update``), 1 on a regression or a run that ended ``error`` or ``timeout``, 2 on
+bad input (unknown suite, unreadable, empty, malformed or another suite's baseline).
 """
 
 from __future__ import annotations
@@ -75,6 +80,7 @@ from benchmarks.files import replace_file
 from benchmarks.gate import TOLERANCES, Finding, compare, entry
 from benchmarks.records import (EXIT_INPUT, CommandParser, InputError, RunSpec, identity,
                                 one_line, provenance)
+from benchmarks.run import EXIT_RUN_ERROR, UNFINISHED
 
 EXIT_OK, EXIT_REGRESSION = 0, 1
 #: Relative perturbations of the initial positions by which ``--update`` finds the metrics
@@ -215,7 +221,8 @@ def probe(records, jobs: int | None, timeout: float | None, load
         spec, row = record.run, record.row
         if spec.rtol is None or row["status"] != "ok" or entry(row)["sensitive"]:
             continue
-        case = problems.make(spec.problem)
+        # Built for the run's horizon, so its reference is the run's (problems.at_horizon).
+        case = problems.make(problems.at_horizon(spec.problem, spec.t_end))
         for k, eps in enumerate(PROBE):
             name = f"roundoff-probe-{i}-{k}"
             # The unperturbed reference serves the probe: on a problem that is not
@@ -253,7 +260,11 @@ def probe(records, jobs: int | None, timeout: float | None, load
 
 def parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m benchmarks.check",
-                      description=__doc__.split("\n")[0])
+                      description=__doc__.split("\n")[0],
+                      epilog=f"exit status: {EXIT_OK} when nothing gating regressed and every "
+                             f"run ended ok or failed (or after --update); {EXIT_REGRESSION} on "
+                             f"a regression or a run that ended {' or '.join(UNFINISHED)} "
+                             f"(--update then writes no baseline); {EXIT_INPUT} for bad input")
     p.add_argument("--suite", default="ci", help="suite name or path (default: ci)")
     p.add_argument("--baseline", type=Path, required=True, help="baseline JSON file")
     p.add_argument("--update", action="store_true",
@@ -280,6 +291,14 @@ def main(argv=None) -> int:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
     current = entries(records)
+    unfinished = [identity(r.row) for r in records if r.row["status"] in UNFINISHED]
+    if unfinished:
+        print(f"error: {len(unfinished)} of {len(records)} runs ended "
+              f"{' or '.join(UNFINISHED)}, with no metrics to "
+              f"{'record: no baseline written' if args.update else 'gate'} (first: "
+              f"{unfinished[0]})", file=sys.stderr)
+        if args.update:
+            return EXIT_RUN_ERROR
     if args.update:
         try:
             for rid, (metrics, spread) in probe(records, args.jobs,
@@ -309,11 +328,12 @@ def main(argv=None) -> int:
     missing = len(baseline["runs"].keys() - current.keys())
     if findings:
         print(table(findings))
-    print(f"drift gate {'FAILED' if gating else 'passed'}: compared {compared} runs of suite "
-          f"{suite.name!r} with {args.baseline} ({missing} of its runs missing, "
+    print(f"drift gate {'FAILED' if gating or unfinished else 'passed'}: compared {compared} "
+          f"runs of suite {suite.name!r} with {args.baseline} ({missing} of its runs missing, "
           f"{len(current) - compared} new); {len(gating)} gating regressions, "
-          f"{len(improvements)} improvements")
-    return EXIT_REGRESSION if gating else EXIT_OK
+          f"{len(improvements)} improvements"
+          + (f"; {len(unfinished)} runs ended {' or '.join(UNFINISHED)}" if unfinished else ""))
+    return EXIT_REGRESSION if gating else EXIT_RUN_ERROR if unfinished else EXIT_OK
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 
 ``Cluster("local:N")`` starts a :class:`distributed.LocalCluster` of ``N`` workers on this
 machine, as threads of this process (each hands its runs to a process of its own, below, so
-worker processes would add only start-up time and compete for the cores: with them the
-``quick`` suite took 2 to 4 s longer on two cores); ``Cluster("tcp://HOST:PORT")`` connects
+worker processes would add only start-up time and compete for the cores);
+``Cluster("tcp://HOST:PORT")`` connects
 to a running scheduler, whose workers (``dask worker tcp://HOST:PORT --nthreads 1``) may be
 on any machine that has this code and its dependencies at the same version (a worker that
 runs another code version gives ``error`` records that say so, never results under the
@@ -109,7 +109,7 @@ class _Host:
 
     def __init__(self):
         # A Dask nanny starts its worker with a low malloc trim threshold; inherited by the
-        # pool process it slows compilation by about 10 %, and set-up times would differ
+        # pool process it slows compilation, and set-up times would differ
         # from the local pool's.
         os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
         self.cpu, self.own, self.claim = claim_core()

@@ -69,8 +69,8 @@ ENV = "DRIFTBENCH_COMPILE_CACHE"
 #: Most bytes the cache folder holds before the least recently used entries go.
 MAX_BYTES = 2 * 1024**3
 #: Compilations quicker than this are not written. Zero: the small helpers (a start, a
-#: projection, a measure) take 10 to 100 ms each to compile and a millisecond to read
-#: back, and a set-up that compiles even one of them is no longer served by the cache alone.
+#: projection, a measure) each take far longer to compile than to read back, and a
+#: set-up that compiles even one of them is no longer served by the cache alone.
 MIN_COMPILE_S = 0.0
 
 _lock = threading.Lock()
@@ -247,6 +247,23 @@ def size(where: Path) -> tuple[int, int]:
     files = [p for p in where.rglob("*") if p.is_file() and not p.name.startswith(".")]
     return (sum(p.name.endswith(("-cache", ".program")) for p in files),
             sum(p.stat().st_size for p in files))
+
+
+def cold(where: Path | None) -> bool:
+    """Whether the cache folder ``where`` (this version's, :func:`folder`) holds nothing
+    to read back: missing, empty, or only other versions' entries beside it. ``False``
+    with the cache off (``None``): nothing is to be read back either way, and the run says
+    so in its ``setup_cache`` column."""
+    return where is not None and (not where.is_dir() or size(where)[0] == 0)
+
+
+def first_run_note(where: Path) -> str:
+    """What a run on a cold cache ``where`` (:func:`cold`) prints before its runs start;
+    it names the folder a user chooses (``where``'s parent)."""
+    return (f"note: the compilation cache {where.parent} has nothing for jax {jax.__version__} "
+            f"yet: this first run compiles each method's programs, which takes minutes "
+            f"(on a suite, most of its time); later runs read them back from the cache. "
+            f"--compile-cache DIR or ${ENV} puts the cache elsewhere.")
 
 
 def clear(base: Path) -> None:

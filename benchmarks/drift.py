@@ -1,4 +1,4 @@
-"""Growth classification of drift series (design notes, section 5).
+"""Growth classification of drift series (docs/design.md, section 5).
 
 A run keeps per-window maxima ``y_k`` of ``|H - H0|`` and of ``|g|`` at window end times
 ``t_k``. Their growth is judged on the running envelope ``E_k = max_{j <= k} y_j`` (an

@@ -24,7 +24,7 @@ import json
 import math
 import statistics
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import jax
@@ -33,9 +33,10 @@ import numpy as np
 import integrators
 import problems
 from benchmarks import compilation
+from benchmarks.columns import computed, of_part
 from benchmarks.audit import explain
 from benchmarks.drift import ENERGY_REL_FLOOR, POS_FLOOR, classify
-from benchmarks.metrics import summarize
+from benchmarks.metrics import summarize, unscored
 from benchmarks.plan import PlannedRun, jax_device, plan
 from benchmarks.records import (QUANTILES, Ending, Metrics, Record, RunSpec, Spread, Status,
                                 Timing, Work, provenance)
@@ -240,7 +241,10 @@ def measure(run: PlannedRun, case, traj: Trajectory, timing: Timing) -> Record:
     """
     metrics = {k: _given(v) for k, v in summarize(case, traj).items()}
     inv = {k[len("max_inv:"):]: v for k, v in metrics.items() if k.startswith("max_inv:")}
-    ending = Ending(status=traj.status, message=traj.message, t_final=_given(traj.t_final),
+    # A finished run that cannot be scored says why, never leaving a silent gap.
+    note = unscored(case, traj)
+    message = "; ".join(filter(None, [traj.message, note])) if note else traj.message
+    ending = Ending(status=traj.status, message=message, t_final=_given(traj.t_final),
                     q_final=json.dumps([float(x) for x in traj.q_final]),
                     v_final=json.dumps([float(x) for x in traj.v_final]),
                     fail_step=_given(traj.fail_step), fail_time=_given(traj.fail_time),
@@ -251,7 +255,7 @@ def measure(run: PlannedRun, case, traj: Trajectory, timing: Timing) -> Record:
                          message=f"the method reported success but {what}")
     work = Work(**{c: _given(traj.counts.get(c, 0)) for c in COUNTERS},
                 linear_solver=traj.linear_solver, pattern_nnz=_given(traj.pattern_nnz))
-    measured = {f.name: metrics.get(f.name) for f in fields(Metrics)}
+    measured = {name: metrics.get(name) for name in of_part("metrics")}
     measured.update(invariant_errors=json.dumps(inv) if inv else "", **growth(case, traj))
     return Record(run.run, ending, timing, work, Metrics(**measured),
                   windows=traj.windows, samples=traj.samples)
@@ -379,10 +383,12 @@ def merge(run: PlannedRun, parts: list[Part]) -> Record:
            for name in parts[0].inv}
     energy = np.concatenate([part.energy for part in parts])
     max_energy = _worst(np.max, energy[ok]) if parts[0].has_energy else None
-    metrics = replace(nominal.metrics, **worst, max_energy_error=max_energy,
-                      invariant_errors=json.dumps(inv) if inv else "",
-                      **growth_of(windows, run.run.t0,
-                                  run.run.energy_scale if parts[0].has_energy else None))
+    # A metric declared with its own compute has no rule that combines lanes: none,
+    # rather than lane 0's value posing as the ensemble's.
+    metrics = nominal.metrics.replace(
+        **worst, max_energy_error=max_energy, invariant_errors=json.dumps(inv) if inv else "",
+        **growth_of(windows, run.run.t0, run.run.energy_scale if parts[0].has_energy else None),
+        **{c.name: None for c in computed()})
     spread = {"failed_fraction": float(np.mean(~ok))}
     for name, short in LANE_METRICS.items():
         values = table[name][over[name]]

@@ -4,7 +4,8 @@ One rule, used by ``python -m benchmarks.check`` against its baseline and by the
 history across commits (so the report never needs the gate's heavy imports). Each run is
 reduced to an :func:`entry` (status, failing step, sensitivity, metrics, drift classes),
 and :func:`compare` lists every regression, improvement and note between two maps of
-entries. Every metric is compared in its own direction with its own :class:`Tolerance`.
+entries. Every metric is compared in its own direction with its own :class:`Tolerance`,
+as its column's declaration gives it (:mod:`benchmarks.columns`).
 """
 
 from __future__ import annotations
@@ -13,41 +14,17 @@ import json
 import math
 from dataclasses import dataclass
 
+from benchmarks import columns
+from benchmarks.columns import Tolerance
 from benchmarks.drift import SEVERITY, kind_of
 from benchmarks.records import Status, one_line
 
 
-@dataclass(frozen=True)
-class Tolerance:
-    """How one metric is compared.
-
-    ``lower`` metrics regress when ``current > factor * baseline`` and ``current > floor``;
-    ``higher`` metrics (digits, ``scd``) regress when ``min(current, floor)`` falls below
-    ``min(baseline, floor) - log10(factor)``, the floor there being the digit count beyond
-    which differences are round-off.
-    """
-
-    direction: str  # "lower" or "higher" is better
-    factor: float
-    floor: float
-
-
-#: Per-metric tolerances. The factor of 4 (0.6 digits for ``scd``) leaves room for what a
-#: change of round-off alone does: residuals accumulate it as a random walk, and an adaptive
-#: method's step sequence jumps when a rejected step turns accepted, which was seen to move
-#: IDA's final error on Andrews' mechanism by a factor of 2 after a refactoring of the
-#: mechanics; the regressions the gate is for move metrics by orders of magnitude. The
-#: floors sit a few hundred ulps above the round-off of O(1) quantities, low enough that a
-#: Newton iteration stopped 1e6 times too early shows in the residuals.
-TOLERANCES: dict[str, Tolerance] = {
-    "max_pos_residual": Tolerance("lower", 4.0, 1e-13),
-    "max_vel_residual": Tolerance("lower", 4.0, 1e-13),
-    "rel_energy_error": Tolerance("lower", 4.0, 1e-13),
-    "final_state_error": Tolerance("lower", 4.0, 1e-12),
-    "scd": Tolerance("higher", 4.0, 11.0),
-}
+#: Per-metric tolerances: the ``gate`` of each column's declaration
+#: (:mod:`benchmarks.columns`, which says why they are what they are).
+TOLERANCES = columns.TOLERANCES
 #: Tolerance of every declared invariant's error (``inv:NAME``).
-INVARIANT_TOLERANCE = Tolerance("lower", 4.0, 1e-12)
+INVARIANT_TOLERANCE = columns.INVARIANT_TOLERANCE
 
 
 def tolerance(metric: str) -> Tolerance:
@@ -97,6 +74,10 @@ def compare_metric(metric: str, base: float | None, cur: float | None,
         return "improvement", f"{c - min(hi, tol.floor):+.2f} digits"
     return None, ""
 
+
+#: The floor an entry records (as ``floor``): its reference's, which final errors are
+#: judged against (:data:`benchmarks.columns.REFERENCE`).
+REFERENCE_FLOOR = columns.REFERENCE.column
 
 #: Statuses of runs that completed their horizon.
 FINISHED = (Status.OK,)
@@ -205,19 +186,21 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
         names = list(dict.fromkeys([*base["metrics"], *cur["metrics"]]))
         # The larger of the two runs' reference floors: where both final errors lie below
         # it, neither they nor their digits (scd) can tell the runs apart.
-        floor = max(base.get("floor") or 0.0, cur.get("floor") or 0.0)
-        finals = (base["metrics"].get("final_state_error"),
-                  cur["metrics"].get("final_state_error"))
-        at_floor = floor > 0 and all(e is not None and e <= floor for e in finals)
+        floors = {REFERENCE_FLOOR: max(base.get("floor") or 0.0, cur.get("floor") or 0.0)}
         for metric in names:
             b, c = base["metrics"].get(metric), cur["metrics"].get(metric)
             if metric not in TOLERANCES and not metric.startswith("inv:"):
                 continue
-            if metric == "scd" and at_floor:
+            judged = columns.TABLE[metric].floor if metric in TOLERANCES else None
+            floor = floors.get(judged.column, 0.0) if judged is not None else 0.0
+            if floor > 0 and judged.of != metric and all(
+                    e is not None and e <= floor
+                    for e in (base["metrics"].get(judged.of), cur["metrics"].get(judged.of))):
                 continue
             spread = spreads.get(metric)
             kind, change = compare_metric(metric, b, c, spread,
-                                          floor if metric == "final_state_error" else 0.0)
+                                          floor if judged is not None and judged.of == metric
+                                          else 0.0)
             if kind is not None:
                 shown = _fmt(b) if spread is None else \
                     f"{_fmt(b)} (round-off {_fmt(min(spread))} to {_fmt(max(spread))})"
@@ -238,7 +221,7 @@ def compare(baseline: dict, current: dict) -> list[Finding]:
 def entry(row) -> dict:
     """What the gate compares of a run's row (a ``runs.csv`` dict or a stored row)."""
     fail_step = _given(row.get("fail_step"))
-    floor = _given(row.get("reference_floor"))
+    floor = _given(row.get(REFERENCE_FLOOR))
     return {
         "status": row["status"],
         "message": _given(row.get("message")) or "",

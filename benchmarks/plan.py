@@ -1,12 +1,16 @@
 """The planner: runs as asked for become planned runs, with everything known before running.
 
-A run travels one way (design notes, section 2): spec strings are resolved where they enter
+A run travels one way (docs/design.md, section 2): spec strings are resolved where they enter
 (:func:`expand`, called by the command line, the suite files and the Python API), and
 :func:`plan` turns the resolved runs into :class:`PlannedRun` values that carry all that is
 fixed before a run starts: the problem's parameters, every integrator option, the horizon,
 the recording grid, the time limit, and the record's :class:`~benchmarks.records.Run`
 part (what the case and the method declare, and the ``run_key``). A worker executes a
-planned run as it is (:func:`benchmarks.execute.execute`) and recomputes none of it.
+planned run as it is (:func:`benchmarks.execute.execute`) and recomputes none of it. A
+horizon (``--t-end``, a suite's ``t_end``, the Python API's ``t_end``) is a parameter of
+every problem whose factory takes ``t_end`` (:func:`problems.at_horizon`): its case and
+reference are built for the horizon that runs, and ``name --t-end T`` is the same run as
+``name:t_end=T``.
 
 Planning is where bad input is refused, before anything runs: each problem's size is
 checked before its case is built (:func:`problems.check_size`), each case is built once per
@@ -36,6 +40,7 @@ from benchmarks import compilation
 from benchmarks.audit import AuditError, audit, explain
 from benchmarks.records import InputError, Run, RunSpec, identity, one_line, run_key
 from problems.ensemble import MAX_LANES, MAX_SEED
+from problems.source import ArgumentError
 from problems.spec import IntegratorSpec, ProblemSpec, SpecError
 
 #: Time limit of a run (seconds) when neither the run, its suite nor the command sets one.
@@ -53,9 +58,10 @@ LONG_STEPS, LONG_WORK = 10**6, 10**8
 class PlannedRun:
     """A run ready to execute: everything known before it starts.
 
-    ``problem`` holds every parameter, ``integrator`` every option of the method that
-    runs; ``horizon`` is the ``t_end`` asked for (``None``: the problem's own; the resolved
-    one is ``run.t_end``); ``grid`` the :class:`~integrators.base.Grid` options;
+    ``problem`` holds every parameter (a factory's ``t_end`` set to the horizon asked for,
+    :func:`problems.at_horizon`), ``integrator`` every option of the method that runs;
+    ``horizon`` is the ``t_end`` asked for (``None``: the problem's own; the resolved one
+    is ``run.t_end``); ``grid`` the :class:`~integrators.base.Grid` options;
     ``timeout`` the time limit in seconds (``None``: no limit); ``run`` the record's
     :class:`~benchmarks.records.Run` part, ``run_key`` included; ``origin`` where the run
     was asked for. For an ensemble, ``device`` is where its loop runs (``cpu`` or ``gpu``,
@@ -136,23 +142,18 @@ def expand(problem_specs, integrator_specs, hs=(), rtols=(), atols=(), t_end=Non
 DEVICES = ("auto", "cpu", "gpu")
 
 #: Fewest lanes for which ``auto`` runs an ensemble on a GPU. A GPU step costs about the
-#: same for a thousand lanes as for one, and many small ensembles sharing one GPU queue
-#: for it: the ``ensemble`` suite (64 and 256 lanes) on one H200 with 16 workers took 1.3 to
-#: 23 times the solve time of this repository's 2-core CPU (genalpha 5.6 s against 0.30 s,
-#: rattle 1.7 s against 0.18 s). From 1024 lanes on the GPU was ahead of one CPU core for
-#: every method measured (``benchmarks/perf/ensemble.py``: rattle 1.55e7 lane-steps/s
-#: against 7.5e6, lobatto3ab3 1.3e6 against about 1e4).
+#: same for a thousand lanes as for one, and many small ensembles queue for one GPU, so
+#: small ensembles are faster on a CPU core; from about a thousand lanes the GPU is ahead
+#: for every method (``python -m benchmarks.perf.ensemble --device gpu`` measures it).
 GPU_MIN_LANES = 1024
 
 #: Most lanes per chunk of an ensemble (:func:`lane_ranges`) unless a run sets its own. On
-#: one core lane-steps per second are highest from 256 to 1024 lanes (issue 28's vmapped
-#: RATTLE on the pendulum: 3.3e7 at 256, 2.9e7 at 1024, 5.6e6 at 4096, memory-bound), so
-#: larger ensembles are better run as several such chunks, side by side on the workers.
-#: XLA:CPU compiles the vmapped loop by batch width, and a lane's round-off can depend on
-#: it: on the pendulum over 2 s every width from 2 to 1024 gave RATTLE's lanes bit for
-#: bit, and 2 to 768 baumgarte-dopri5's, while 1024 lanes of dopri5 differed from 768 by
-#: 1.1e-15 in q and 2048 of RATTLE from 1024 by 2e-15 (and in some Newton counts). At most
-#: 512 lanes per chunk keeps every lane measured the same whatever the chunking.
+#: one core lane-steps per second are highest for a few hundred lanes per vmapped loop
+#: (beyond, the loop is memory-bound), so larger ensembles run as several such chunks,
+#: side by side on the workers. XLA:CPU compiles the vmapped loop by batch width, and a
+#: lane's round-off can depend on it from about a thousand lanes on; at most 512 lanes per
+#: chunk keeps every lane's result the same bit for bit whatever the chunking
+#: (``tests/test_ensemble.py``).
 LANES_PER_CHUNK = 512
 
 
@@ -311,7 +312,7 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
     allow_large : bool
         Lift the size limit of problems and :data:`STEP_LIMIT`.
     notes : list of str, optional
-        The estimated sizes of long runs are appended to it.
+        The estimated sizes of long runs, and the audit's notes, are appended to it.
 
     Returns
     -------
@@ -333,7 +334,10 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
         try:
             if spec.timeout is not None:
                 check_timeout(spec.timeout, spec.label())
-            problem = problems.resolve(spec.problem, spec.origin)
+            # The horizon reaches the factory where it takes one: the case, its recorded
+            # parameters and its reference are then built for the horizon that runs.
+            problem = problems.at_horizon(problems.resolve(spec.problem, spec.origin),
+                                          spec.t_end)
             method = integrators.resolve(spec.integrator, spec.origin)
             if (problem, spec.t_end) not in cases:
                 if not allow_large:
@@ -343,7 +347,7 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
                 # The library's own problems are verified by its tests; user code is
                 # checked here, once per problem spec, before it can spoil every run.
                 if problem not in audited and problems.origin(problem.name) != "built-in":
-                    audit(case)
+                    audit(case, notes)
                     audited.add(problem)
                 cases[problem, spec.t_end] = (case if spec.t_end is None else
                                               case.with_t_end(spec.t_end))
@@ -371,7 +375,7 @@ def plan(specs: Iterable[RunSpec], version: str, grid_options: dict | None = Non
                                   spec.t_end, tuple(run_grid.items()),
                                   None if math.isinf(limit) else float(limit), run,
                                   spec.origin, device, chunks))
-        except (InputError, AuditError, SpecError) as exc:
+        except (InputError, AuditError, SpecError, ArgumentError) as exc:
             raise InputError(one_line(f"{where}{exc}")) from None
         except Exception as exc:  # user code or a defect met while building: one line
             raise InputError(one_line(f"{where}{spec.label()}: {explain(exc)}")) from None

@@ -16,7 +16,7 @@ to each worker over a pipe, waits on the pipes and on the process sentinels at o
 Why long-lived
 --------------
 A fresh interpreter pays for importing JAX and for JAX's first-use compilations of every
-primitive that building a case touches (seconds on this machine). A worker pays that once and
+primitive that building a case touches (seconds). A worker pays that once and
 then runs task after task, keeping those caches warm; it is recycled after
 :data:`MAX_TASKS_PER_WORKER` tasks to bound the growth of its caches. A worker is a fresh
 interpreter (``fork`` + ``exec`` through :mod:`subprocess`, as the ``spawn`` start method
@@ -97,11 +97,11 @@ def one_blas_thread() -> None:
 
     OpenBLAS reads :data:`THREAD_ENV` once, when it loads, and a process that has imported
     numpy and scipy (jaxlib's LAPACK calls are scipy's OpenBLAS) has loaded it with a thread
-    per core. Under load the second thread waits for a core, spinning: a 272 x 272 LU
-    solve took 150 ms with two threads against 1.2 ms with one (2 cores, load 2.5), which
-    made every dense-path run in the tests and the perf benchmarks a hundred times slower
-    than in the suite's workers. The variables cover libraries loaded later and child
-    processes; threadpoolctl sets the limit of those already loaded.
+    per core. Under load the second thread waits for a core, spinning, which makes a small
+    dense solve far slower than with one thread, and the tests and the
+    perf benchmarks would not time what the suite's workers do. The variables cover
+    libraries loaded later and child processes; threadpoolctl sets the limit of those
+    already loaded.
     """
     os.environ.update(THREAD_ENV)
     threadpoolctl.threadpool_limits(1)
@@ -115,8 +115,8 @@ def one_xla_thread() -> None:
     client is made. jaxlib's LAPACK kernels (LU, Cholesky, QR) split a large batch across
     that pool and block their own pool thread until the pieces are done; two such kernels
     at once on a pool of two threads wait for each other for ever. A vmapped ensemble
-    with dense linear algebra does exactly that: ``rattle`` on ``chain:N=8`` with 512 to
-    4096 lanes hung in about half the tries on 2 cores, never with one thread (8 of 8).
+    with dense linear algebra does exactly that (``rattle`` on ``chain:N=8`` with 512 to
+    4096 lanes can hang with two threads, never with one).
     The pool's workers are pinned to one core and so have one thread already; this gives
     the same to a process that is not pinned (the tests, the perf benchmarks): it is
     pinned to one core while the client is made, then every thread is given back the

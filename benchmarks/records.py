@@ -17,8 +17,8 @@
 - :func:`provenance`: the commit, whether the working tree differs from it, the code
   version, the machine and the package versions;
 - :class:`InputError`: bad input, reported on one line before any run starts;
-- :data:`TOLERANCES` and :func:`compare_metric`: when a metric has regressed, the one rule
-  that the drift gate and the report's history agree on.
+- the column lists :data:`COLUMNS`, :data:`ACCURACY_COLUMNS`, :data:`TEXT_COLUMNS` and
+  :data:`WHOLE_COLUMNS`, views of the columns' declarations (:mod:`benchmarks.columns`).
 
 This module imports neither JAX nor an integrator nor a problem.
 """
@@ -34,53 +34,14 @@ import math
 import os
 import platform
 import subprocess
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
-#: The metrics whose quantiles over an ensemble's lanes :class:`Spread` holds, by the
-#: short name of its columns, and the quantiles (in percent).
-SPREAD_METRICS = ("pos", "vel", "energy", "final")
-QUANTILES = (0, 50, 90, 100)
-
-#: Columns of runs.csv, in order (design notes, section 6, then the work counters, what
-#: the run knew about its case and method, its drift classes and the resume key).
-COLUMNS = (
-    "problem", "integrator", "h", "rtol", "atol", "t_end", "status", "message",
-    "n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves",
-    "wall_s", "setup_s", "max_pos_residual", "max_vel_residual", "max_energy_error",
-    "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
-    "invariant_errors", "sampling", "fail_step", "fail_time", "callback_s", "repeats",
-    "wall_min_s", "wall_max_s", "options", "params", "run_key", "linear_solver",
-    "pattern_nnz", "t0", "energy_scale", "nominal_order", "sensitive", "pos_growth",
-    "energy_growth", "reference_floor", "family", "setup_cache",
-    "lanes", "seed", "batched", "failed_fraction", *(
-        f"{metric}_q{q}" for metric in SPREAD_METRICS for q in QUANTILES),
-    "chunks", "device",
-)
-
-#: The columns that depend on what was computed and not on how long it took: equal, bit for
-#: bit, for the same run on the same machine whatever engine or ``jobs`` ran it.
-ACCURACY_COLUMNS = (
-    "status", "message", "n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
-    "n_lin_solves", "max_pos_residual", "max_vel_residual", "max_energy_error",
-    "rel_energy_error", "final_state_error", "scd", "t_final", "q_final", "v_final",
-    "invariant_errors", "sampling", "fail_step", "fail_time", "linear_solver", "pattern_nnz",
-    "pos_growth", "energy_growth", "reference_floor", "failed_fraction",
-    *(f"{metric}_q{q}" for metric in SPREAD_METRICS for q in QUANTILES),
-)
-
-#: Columns that hold text; every other column holds a number or nothing.
-TEXT_COLUMNS = ("problem", "integrator", "status", "message", "q_final", "v_final",
-                "invariant_errors", "sampling", "options", "params", "run_key",
-                "linear_solver", "pos_growth", "energy_growth", "family", "device")
-
-#: Columns that hold whole numbers (pandas reads them as floats where some are empty).
-WHOLE_COLUMNS = ("n_steps", "n_rejected", "n_f_evals", "n_jac_evals", "n_newton",
-                 "n_lin_solves", "fail_step", "repeats", "pattern_nnz", "nominal_order",
-                 "sensitive", "lanes", "seed", "batched", "chunks")
+from benchmarks.columns import (ACCURACY_COLUMNS, COLUMNS, QUANTILES, SPREAD_METRICS,
+                                TEXT_COLUMNS, WHOLE_COLUMNS, of_part)
 
 #: Environment variable that pins the code version (see :func:`provenance`).
 CODE_VERSION_ENV = "DRIFTBENCH_CODE_VERSION"
@@ -91,7 +52,7 @@ PACKAGES = ("driftbench", "numpy", "scipy", "jax", "jaxlib", "diffrax", "scikit-
 
 
 class Status(enum.StrEnum):
-    """How a run ended (design notes, section 6): the members of
+    """How a run ended (docs/design.md, section 6): the members of
     :class:`integrators.base.Status`, whose values runs.csv and the store hold.
 
     Defined here as well because the store and the reports read records without importing
@@ -278,22 +239,62 @@ class Work:
     device: str | None = None
 
 
-@dataclass(frozen=True)
 class Metrics:
-    """The metrics (design notes, section 5; :mod:`benchmarks.metrics`), the errors of the
-    declared invariants (JSON), the drift classes (:mod:`benchmarks.drift`) and the
-    accuracy of the reference the final error was measured against."""
+    """The metrics (docs/design.md, section 5; :mod:`benchmarks.metrics`), the errors of the
+    declared invariants (JSON), the drift classes (:mod:`benchmarks.drift`), the
+    accuracy of the reference the final error was measured against and, without a
+    conserved energy, the energy balance's error and its quadrature's floor
+    (:mod:`benchmarks.balance`): one value per column of part ``metrics``
+    (:mod:`benchmarks.columns`), ``None`` where not measured.
 
-    max_pos_residual: float | None = None
-    max_vel_residual: float | None = None
-    max_energy_error: float | None = None
-    rel_energy_error: float | None = None
-    final_state_error: float | None = None
-    scd: float | None = None
-    invariant_errors: str | None = None
-    pos_growth: str | None = None
-    energy_growth: str | None = None
-    reference_floor: float | None = None
+    Not a dataclass: its fields are the declared columns, so that a metric declared later
+    has one too. Read a value as an attribute; :meth:`replace` gives a changed copy.
+    """
+
+    __slots__ = ("_values",)
+
+    def __init__(self, **values):
+        names = of_part("metrics")
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            raise TypeError(f"Metrics: no metric column named {', '.join(unknown)}")
+        object.__setattr__(self, "_values", {n: values.get(n) for n in names})
+
+    def as_dict(self) -> dict:
+        """Every declared metric column -> its value (``None``: not measured)."""
+        return {n: self._values.get(n) for n in of_part("metrics")}
+
+    def replace(self, **changes) -> "Metrics":
+        """A copy with ``changes``."""
+        return Metrics(**{**self.as_dict(), **changes})
+
+    def __getattr__(self, name):
+        if name.startswith("_") or name not in of_part("metrics"):
+            raise AttributeError(name)
+        return self._values.get(name)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Metrics is immutable: use replace()")
+
+    def __eq__(self, other):
+        return isinstance(other, Metrics) and self.as_dict() == other.as_dict()
+
+    def __hash__(self):
+        return hash(tuple(self.as_dict().items()))
+
+    def __repr__(self):
+        given = ", ".join(f"{k}={v!r}" for k, v in self.as_dict().items() if v is not None)
+        return f"Metrics({given})"
+
+    def __reduce__(self):
+        return (_metrics, (self._values,))
+
+
+def _metrics(values: dict) -> Metrics:
+    """A :class:`Metrics` of ``values`` as pickled (names the unpickling side does not
+    declare are dropped)."""
+    names = set(of_part("metrics"))
+    return Metrics(**{k: v for k, v in values.items() if k in names})
 
 
 @dataclass(frozen=True)
@@ -325,7 +326,8 @@ class Spread:
 
 
 #: The parts of a record, by field name of :class:`Record`: each column of :data:`COLUMNS`
-#: is a field of one of them.
+#: is a field of the part its declaration names (``tests/test_store.py`` holds the two
+#: equal).
 PARTS = {"run": Run, "ending": Ending, "timing": Timing, "work": Work, "metrics": Metrics,
          "spread": Spread}
 
@@ -356,14 +358,15 @@ class Record:
         """The ``runs.csv`` row: every column of :data:`COLUMNS`, in order."""
         values = {}
         for name in PARTS:
-            values.update(asdict(getattr(self, name)))
-        return {c: values[c] for c in COLUMNS}
+            part = getattr(self, name)
+            values.update(part.as_dict() if isinstance(part, Metrics) else asdict(part))
+        return {c: values.get(c) for c in COLUMNS}
 
     @classmethod
     def from_row(cls, row, windows=None, samples=None, lanes=None) -> "Record":
         """The record of a ``runs.csv`` or stored row (a mapping; absent columns are
         ``None``)."""
-        parts = {name: part(**{f.name: row.get(f.name) for f in fields(part)})
+        parts = {name: part(**{c: row.get(c) for c in of_part(name)})
                  for name, part in PARTS.items()}
         status = parts["ending"].status
         parts["ending"] = replace(parts["ending"],

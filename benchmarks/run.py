@@ -27,12 +27,17 @@ all under ``--out``. Bad input (unknown names, malformed suite files, out-of-ran
 options, inconsistent initial values, an unreachable cluster, a problem above its size
 limit or a run above the step limit without ``--allow-large``, a damaged or foreign store,
 an output folder another invocation is writing) is reported on one line before any run
-starts, with exit status 2. Runs that fail are data: they are recorded with their status
-and the command still exits 0. Results that cannot all be written (a full disk, a store
-damaged meanwhile) give one line and exit status 2 once every run has ended; every run's
-row is in ``runs.csv`` all the same. An interrupted invocation (Ctrl-C, ``SIGTERM``), also
-while it validates or writes the report, stops its workers, keeps every finished run and
-exits with status 130 (the one line says how to write the report where it was cut short).
+starts, with exit status 2. A method that fails is data: its run is recorded ``failed``
+and the command exits 0 (:data:`EXIT_OK`) when every run ended ``ok`` or ``failed``. A run
+that ended ``error`` (user code or the library raised, a worker crashed) or ``timeout``
+has no result; it is recorded with its status and message, the suite goes on, and the
+command exits 1 (:data:`EXIT_RUN_ERROR`) at the end, after the report. Results that cannot
+all be written (a full disk, a store damaged meanwhile) give one line and exit status 2
+once every run has ended; every run's row is in ``runs.csv`` all the same. An interrupted
+invocation (Ctrl-C, ``SIGTERM``), also while it validates or writes the report, stops its
+workers, keeps every finished run and exits with status 130 (the one line says how to
+write the report where it was cut short). :func:`main` returns these statuses to a caller
+in Python.
 """
 
 from __future__ import annotations
@@ -50,21 +55,37 @@ from benchmarks.records import EXIT_INPUT, CommandParser, InputError, RunSpec, o
 # spawns from the command line (the report's drawing processes), which would otherwise
 # import JAX and every integrator for nothing, about a second each.
 
+#: Exit status when every run ended as planned: ``ok``, or ``failed`` (the method failed,
+#: which is data).
+EXIT_OK = 0
+#: Exit status when a run ended without a result (:data:`UNFINISHED`).
+EXIT_RUN_ERROR = 1
 #: Exit status of an interrupted invocation.
 EXIT_INTERRUPTED = 130
+#: Statuses of a run that ended without a result: ``--resume`` runs them again.
+UNFINISHED = ("error", "timeout")
+#: What the exit statuses mean, as ``--help`` says it.
+EXIT_STATUSES = (f"exit status: {EXIT_OK} when every run ended ok or failed (a method that "
+                 f"fails is data); {EXIT_RUN_ERROR} when a run ended {' or '.join(UNFINISHED)} "
+                 f"(recorded with its message; the other runs and the report are written); "
+                 f"{EXIT_INPUT} for bad input, refused on one line before any run; "
+                 f"{EXIT_INTERRUPTED} when interrupted")
 
 
 def parser() -> argparse.ArgumentParser:
     from benchmarks.plan import DEVICES, GPU_MIN_LANES, LANES_PER_CHUNK
 
-    p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0])
+    p = CommandParser(prog="python -m benchmarks.run", description=__doc__.split("\n")[0],
+                      epilog=EXIT_STATUSES)
     p.add_argument("--suite", help="suite name (benchmarks/suites/NAME.toml) or path; default: default")
     p.add_argument("--problems", nargs="+", metavar="SPEC", help="problems, e.g. pendulum sps-ring:N=12")
     p.add_argument("--integrators", nargs="+", metavar="SPEC", help="integrator keys, e.g. rattle lobatto3ab3")
     p.add_argument("--h", nargs="+", type=float, default=[], help="step sizes (fixed-step methods)")
     p.add_argument("--rtol", nargs="+", type=float, default=[], help="relative tolerances (adaptive methods)")
     p.add_argument("--atol", nargs="+", type=float, default=[], help="absolute tolerances (adaptive methods)")
-    p.add_argument("--t-end", type=float, help="end time (default: each problem's own)")
+    p.add_argument("--t-end", type=float,
+                   help="end time, given to the t_end parameter of every problem that has "
+                        "one (default: each problem's own)")
     p.add_argument("--ensemble", type=int, metavar="K",
                    help="run each run from K initial states near the problem's own (lane 0: "
                         "its own), in one compiled loop where the method allows")
@@ -246,9 +267,11 @@ def main(argv=None) -> int:
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
-            compilation.enable(args.compile_cache)
+            cache = compilation.enable(args.compile_cache)
         except OSError as exc:
             raise InputError(f"--compile-cache: {one_line(exc)}") from None
+        # Read before anything compiles: validating the runs writes to the cache.
+        cold = compilation.cold(cache)
         load_plugins()
         runs, options, targets = plan(args)
         # The engines and the report stage are imported once the input is read: --list
@@ -257,12 +280,19 @@ def main(argv=None) -> int:
         from reports import build as build_report
 
         records = run_specs(runs, args.out, args.jobs, resume=args.resume,
-                            allow_large=args.allow_large, **options)
+                            allow_large=args.allow_large, **options,
+                            start_notes=[compilation.first_run_note(cache)] if cold else [])
         counts: dict[str, int] = {}
         for record in records:
             counts[record.row["status"]] = counts.get(record.row["status"], 0) + 1
         summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
         print(f"wrote {args.out / 'runs.csv'} ({len(records)} runs: {summary or 'none'})")
+        unfinished = sum(counts.get(status, 0) for status in UNFINISHED)
+        code = EXIT_RUN_ERROR if unfinished else EXIT_OK
+        if unfinished:
+            print(f"error: {unfinished} of {len(records)} runs ended "
+                  f"{' or '.join(UNFINISHED)}: their messages are in {args.out / 'runs.csv'}",
+                  file=sys.stderr)
         if not args.no_report:
             store = args.out / "driftbench.sqlite"
             try:
@@ -278,7 +308,7 @@ def main(argv=None) -> int:
                       f"is in {args.out}; python -m reports --db {store} --out {args.out} "
                       f"writes it", file=sys.stderr)
                 return EXIT_INTERRUPTED
-        return 0
+        return code
     except (InputError, Interrupted) as exc:
         if not _received:
             print(f"error: {one_line(exc)}", file=sys.stderr)

@@ -66,9 +66,10 @@ UNFINISHED = (Status.ERROR, Status.TIMEOUT)
 SESSION_COLUMNS = {"suite": "suite", "started": "session_started", "commit_sha": "commit",
                    "dirty": "dirty", "machine": "machine", "python": "python",
                    "versions": "versions", "timing_note": "timing_note"}
-#: Columns read as text; every other column whose values are numbers (or missing) is read
-#: as float64, so a metric that no run measured is NaN, not None.
-TEXT = {*TEXT_COLUMNS, *SESSION_COLUMNS.values()} - {"session_started", "dirty"}
+#: Session columns read as text (with :data:`~benchmarks.records.TEXT_COLUMNS`); every
+#: other column whose values are numbers (or missing) is read as float64, so a metric that
+#: no run measured is NaN, not None.
+SESSION_TEXT = set(SESSION_COLUMNS.values()) - {"session_started", "dirty"}
 
 
 #: SQLite ``application_id`` of a driftbench store (``DRFT``), read by ``file(1)`` too.
@@ -189,6 +190,20 @@ def _add_columns(db: sqlite3.Connection, version: int) -> None:
         if column not in have:
             db.execute(f'ALTER TABLE runs ADD COLUMN "{column}"')
     db.execute(f"PRAGMA user_version = {version}")
+
+
+def _add_declared(db: sqlite3.Connection) -> None:
+    """Add, empty, the declared columns (:data:`COLUMNS`) that ``runs`` lacks: a column
+    declared after the file was written (:mod:`benchmarks.columns`) is empty for the runs
+    it holds, as every migration that added columns made them. Done by name, not by schema
+    version, since files of one version were written by code that declared different
+    columns."""
+    have = set(_table_columns(db, "runs"))
+    missing = [c for c in COLUMNS if c not in have]
+    if missing:
+        with db:
+            for column in missing:
+                db.execute(f'ALTER TABLE runs ADD COLUMN "{column}"')
 
 
 def _v3_to_v4(db: sqlite3.Connection) -> None:
@@ -408,6 +423,7 @@ class Store:
         # of the process; only a power loss may drop the last ones.
         self.db.execute("PRAGMA synchronous=NORMAL")
         migrate(self.db, str(self.path))
+        _add_declared(self.db)
         if app != APPLICATION_ID:
             with self.db:
                 self.db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
@@ -543,7 +559,7 @@ def load_runs(db) -> pd.DataFrame:
     finally:
         con.close()
     for column in frame.columns:
-        if column in TEXT or frame[column].dtype != object:
+        if column in TEXT_COLUMNS or column in SESSION_TEXT or frame[column].dtype != object:
             continue  # pandas already typed it (ids stay integers)
         values = frame[column].dropna()
         if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):

@@ -17,7 +17,10 @@ tables of runs and ``studies``; each group runs every combination of its lists::
     timeout = 60          # this group's runs only
 
 ``h`` applies to fixed-step integrators, ``rtol`` and ``atol`` to adaptive ones. A group's
-``timeout`` overrides the suite's, and ``--timeout`` on the command line overrides both.
+``t_end`` (the horizon, overridden by ``--t-end``) is given to the factory of every problem
+that takes a ``t_end`` parameter, so its case and reference are built for it
+(:func:`problems.at_horizon`). A group's ``timeout`` overrides the suite's, and
+``--timeout`` on the command line overrides both.
 ``ensemble = K`` (and ``seed = S``, default 0) runs each of the group's runs from ``K``
 initial states (:mod:`problems.ensemble`), ``device = "auto"`` (or ``"cpu"``, ``"gpu"``)
 says where their loops run and ``lanes_per_chunk = L`` how many lanes a chunk of them

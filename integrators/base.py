@@ -24,7 +24,7 @@ from problems.source import located
 
 
 class Status(enum.StrEnum):
-    """How a run ended (design notes, section 6); the values are what runs.csv and the store
+    """How a run ended (docs/design.md, section 6); the values are what runs.csv and the store
     hold, and a member compares equal to its value."""
 
     OK = "ok"

@@ -1,4 +1,4 @@
-"""Baumgarte-stabilised explicit Runge-Kutta methods (diffrax solvers, our own step loop).
+"""Baumgarte-stabilised explicit Runge-Kutta methods (diffrax tableaus, our own step loop).
 
 The constrained equations are replaced by the ODE ``q' = v``, ``M(q) v' = f - G^T lam`` with
 ``lam`` chosen so that the constraint obeys the damped equation of Baumgarte (1972)
@@ -12,8 +12,9 @@ The constrained equations are replaced by the ODE ``q' = v``, ``M(q) v' = f - G^
 Cholesky factorisation of the m x m matrix ``G M^{-1} G^T`` per evaluation). The exact
 solution keeps ``g = 0``; numerical drift off it decays instead of accumulating.
 
-The time loop is ours, compiled with ``lax.while_loop`` around diffrax's ``solver.step``
-and ``PIDController.adapt_step_size`` (the same calls as diffrax's own loop), so that every
+The time loop is ours, compiled with ``lax.while_loop`` around an explicit Runge-Kutta step
+with diffrax's Butcher tableaus (:func:`erk_step`) and diffrax's
+``PIDController.adapt_step_size`` (the controller of diffrax's own loop), so that every
 accepted step is measured without storing the steps: the loop keeps the per-window maxima
 and the sampled states of :class:`integrators.record.Recorder`'s layout inside itself
 (:func:`integrators.record.tracker`), and a run is one call of it, whatever its length.
@@ -88,6 +89,45 @@ def baumgarte_field(mech: Mechanics, alpha: float, beta: float, schur=None):
         return jnp.concatenate([v, a])
 
     return field
+
+
+def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
+    """One explicit Runge-Kutta step of ``tableau`` from ``(t0, y0)`` to ``t1``.
+
+    With ``dt = t1 - t0`` and ``f_1 = f0``, the stages are
+    ``f_i = field(t0 + c_i dt, y0 + dt sum_j a_ij f_j)`` (``t1`` where ``c_i = 1``), the
+    solution ``y1 = y0 + sum_i b_i (dt f_i)`` (the last stage's point where the tableau is
+    stiffly accurate, ``b = a_s``), the error estimate ``sum_i e_i (dt f_i)``: diffrax's
+    ``AbstractERK.step`` for an ODE term, whose stage values are formed the same way.
+
+    The stages are written out one after another for XLA to fuse: diffrax runs them in a
+    loop with the stage values in buffers, which is an inner loop per step; straight-line
+    stages cost a fraction of that for the small systems, and the same arithmetic.
+
+    Returns ``(y1, y_error, f_last)``: ``f_last`` is the last stage, ``field(t1, y1)`` for a
+    first-same-as-last tableau (the next step's ``f0``).
+    """
+    dt = t1 - t0
+    fs = [field(t0, y0, None) if f0 is None else f0]
+    y = y0
+    for a_i, c_i in zip(tableau.a_lower, tableau.c):
+        # Zero coefficients are left out: each would add an exact zero.
+        y = y0 + dt * sum(float(a) * f for a, f in zip(a_i, fs) if a != 0)
+        fs.append(field(t1 if c_i == 1 else t0 + float(c_i) * dt, y, None))
+    ks = [dt * f for f in fs]
+    if not tableau.ssal:
+        y = y0 + sum(float(b) * k for b, k in zip(tableau.b_sol, ks) if b != 0)
+    y_error = sum(float(e) * k for e, k in zip(tableau.b_error, ks) if e != 0)
+    if isinstance(y_error, int):
+        y_error = jnp.zeros_like(y0)
+    return y, y_error, fs[-1]
+
+
+def first_stage(solver, field, t0, y0):
+    """The ``f0`` of the first :func:`erk_step`: ``field(t0, y0)`` for a first-same-as-last
+    tableau, whose later steps reuse their last stage; ``None`` otherwise (evaluated in
+    every step)."""
+    return field(t0, y0, None) if solver.tableau.fsal else None
 
 
 class LoopState(NamedTuple):
@@ -182,11 +222,11 @@ def _term(mech: Mechanics, schur, params) -> diffrax.ODETerm:
 
 @partial(jax.jit, static_argnames=("mech", "schur", "solver", "control"))
 def initial_state(y0, params, *, mech, schur, solver, control) -> LoopState:
-    """The loop state at ``t0``: first attempt's end, solver and controller states."""
+    """The loop state at ``t0``: first attempt's end, first stage and controller state."""
     term = _term(mech, schur, params)
     t_next, cstate = control.init(term, solver, y0, params)
     t0 = jnp.asarray(control.t0, dtype=jnp.float64)
-    sstate = solver.init(term, t0, t_next, y0, None)
+    sstate = first_stage(solver, term.vector_field, t0, y0)
     zero = jnp.zeros((), jnp.int64)
     return LoopState(t0, jnp.asarray(t_next, jnp.float64), y0, sstate, cstate, zero, zero,
                      zero, jnp.zeros((), jnp.int32))
@@ -200,18 +240,18 @@ def running(st: LoopState, t_end: float, max_steps) -> jax.Array:
 
 def attempt(term, solver, control, params, error_order, st: LoopState
             ) -> tuple[LoopState, jax.Array]:
-    """One step attempt from ``st``: the next loop state and whether the step was accepted
-    (then the state's ``t`` and ``y`` are the new point; otherwise they are unchanged and
-    ``code`` says whether the attempt failed)."""
+    """One step attempt (:func:`erk_step`) from ``st``: the next loop state and whether
+    the step was accepted (then the state's ``t`` and ``y`` are the new point; otherwise
+    they are unchanged and ``code`` says whether the attempt failed)."""
     tiny = 16 * np.finfo(np.float64).eps
-    y1, y_error, _, sstate, result = solver.step(
-        term, st.t, st.t_next, st.y, None, st.solver_state, False)
+    y1, y_error, f_last = erk_step(solver.tableau, term.vector_field, st.t, st.t_next, st.y,
+                                   st.solver_state)
+    sstate = f_last if solver.tableau.fsal else None
     keep, t_new, t_next, cstate = control.adapt(params, st, y1, y_error, error_order)
     finite = jnp.all(jnp.isfinite(y1))
     underflow = ~keep & (t_next - st.t <= tiny * jnp.maximum(1.0, jnp.abs(st.t)))
-    code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER,
-                     jnp.where(keep & ~finite, Failure.NON_FINITE,
-                               jnp.where(underflow, Failure.UNDERFLOW, Failure.NONE)))
+    code = jnp.where(keep & ~finite, Failure.NON_FINITE,
+                     jnp.where(underflow, Failure.UNDERFLOW, Failure.NONE))
     accept = keep & (code == 0)
 
     def pick(new, old):
@@ -257,6 +297,29 @@ STATIC = ("mech", "schur", "solver", "control", "grid")
 
 #: One run (:func:`run`), compiled.
 run_one = jax.jit(run, static_argnames=STATIC)
+
+
+@partial(jax.jit, static_argnames=STATIC)
+def run_packed(state: LoopState, params, *, mech, schur, solver, control, grid):
+    """:func:`run` with its results (some twenty arrays: state, counters, windows,
+    samples) stacked into one float64 vector (:func:`unpack` on the host): one transfer to
+    the host instead of one per array, each of which has a fixed cost of its own, most of
+    a short run's. The counters and flags are exact in float64 (below ``2^53``)."""
+    out = run(state, params, mech=mech, schur=schur, solver=solver, control=control,
+              grid=grid)
+    return jnp.concatenate([jnp.ravel(x).astype(jnp.float64)
+                            for x in jax.tree_util.tree_leaves(out)])
+
+
+def unpack(flat: np.ndarray, like):
+    """The results of :func:`run` from :func:`run_packed`'s vector ``flat``, as host
+    arrays shaped and typed as ``like`` (their shapes and dtypes)."""
+    leaves, tree = jax.tree_util.tree_flatten(like)
+    out, start = [], 0
+    for x in leaves:
+        out.append(flat[start:start + x.size].reshape(x.shape).astype(x.dtype, copy=False))
+        start += x.size
+    return jax.tree_util.tree_unflatten(tree, out)
 
 
 @partial(jax.jit, static_argnames=STATIC)
@@ -313,11 +376,12 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
                                             linear_solver)
     y0_device = jnp.asarray(y0)
     state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
-    compiled = compile_lifted(run_one, state0, params, grid=grid, **static)
+    compiled = compile_lifted(run_packed, state0, params, grid=grid, **static)
+    like = jax.eval_shape(partial(run_one, grid=grid, **static), state0, params)
     names = series_names(mech)
 
     def solve():
-        state, tally = jax.device_get(compiled(state0, params))
+        state, tally = unpack(np.asarray(compiled(state0, params)), like)
         return _trajectory(state, tally, names, solver, control, max_steps, grid, sampling,
                            solver_record)
 
@@ -390,7 +454,7 @@ class BaumgarteRK(BaumgarteBase, FixedStep):
     rtol = 1e-8, dopri5 at 1e-6 and dopri8 at 1e-10: 3 lowered max ``|g|`` by 3.5 to 4.8
     orders of magnitude against ``alpha = beta = 0`` for every method, at 8-27 % more steps
     for the adaptive ones. Larger values lowered ``|g|`` further only for the adaptive
-    methods, and at a price in steps (10 took 1.6x (dopri8) and 1.5x (tsit5) the steps of
+    methods, and at a price in steps (10 needed 1.6x (dopri8) and 1.5x (tsit5) the steps of
     3 on ``pendulum``); for rk4 they made ``|g|`` and the final error larger (7x and 17x
     at 10). RK4's real stability interval (2.78) allows ``h < 0.9`` for ``beta = 3``.
 
@@ -419,21 +483,21 @@ class BaumgarteRK(BaumgarteBase, FixedStep):
         return diffrax.ODETerm(baumgarte_field(mech, self.alpha, self.beta, schur))
 
     def start(self, mech: Mechanics, schur, q0, v0, t0):
-        """``(y, solver_state)`` with ``y = (q, v)`` (the state is ``None`` but for an
-        FSAL pair, whose first stage it holds)."""
+        """``(y, f0)`` with ``y = (q, v)`` (``f0`` is ``None`` but for an FSAL tableau,
+        whose first stage it holds: :func:`first_stage`)."""
         y0 = jnp.concatenate([q0, v0])
-        return y0, SOLVERS[self.solver]().init(self.term(mech, schur), t0, t0, y0, None)
+        solver = SOLVERS[self.solver]()
+        return y0, first_stage(solver, self.term(mech, schur).vector_field, t0, y0)
 
     def step(self, mech: Mechanics, schur, carry, t, h):
-        """One step of diffrax's ``solver.step`` (:class:`integrators.fixed.FixedStep`)."""
-        y, sstate = carry
-        solver = SOLVERS[self.solver]()
-        y1, _, _, sstate, result = solver.step(self.term(mech, schur), t, t + h, y, None,
-                                               sstate, False)
-        code = jnp.where(result != diffrax.RESULTS.successful, Failure.SOLVER, Failure.NONE)
-        stages = solver.tableau.num_stages - int(solver.tableau.fsal)
-        return (y1, sstate), code, jnp.asarray(0.0), {"n_f_evals": stages,
-                                                      "n_lin_solves": stages}
+        """One :func:`erk_step` (:class:`integrators.fixed.FixedStep`); an explicit step
+        cannot fail, a non-finite state is the loop's to find."""
+        y, f0 = carry
+        tableau = SOLVERS[self.solver].tableau
+        y1, _, f_last = erk_step(tableau, self.term(mech, schur).vector_field, t, t + h, y, f0)
+        stages = tableau.num_stages - int(tableau.fsal)
+        return ((y1, f_last if tableau.fsal else None), jnp.asarray(Failure.NONE),
+                jnp.asarray(0.0), {"n_f_evals": stages, "n_lin_solves": stages})
 
     def observe(self, mech: Mechanics, carry):
         """``(q, v)``."""

@@ -73,11 +73,11 @@ class FixedStep(Integrator):
         and an ``O(K^3)`` LU for ``K`` unknowns at every iteration, through LAPACK, which
         keeps XLA from compiling the time loop into one kernel; the structured path's
         simplified Newton takes two to five times the iterations, each ``O(n)`` and inside
-        the one kernel. Measured one trajectory at a time (``python -m
-        benchmarks.perf.crossover``, one core, load 0.2 to 1): the structured path was
-        the faster on every constant-diagonal and block-diagonal mass tried, from one to
-        eight constraints, 5 to 21 times for lobatto3ab3 and 3 to 10 times for the
-        generalized-alpha members.
+        the one kernel. One trajectory at a time the structured path is the faster on
+        every constant-diagonal and block-diagonal mass, from one constraint up, for
+        lobatto3ab3 and the generalized-alpha members, with masses given as functions
+        ``M(q)`` and as kinetic energies alike (``python -m benchmarks.perf.crossover``
+        measures the crossover).
         """
         return DENSE_MAX
 

@@ -50,6 +50,23 @@ class Coefficients(NamedTuple):
         return cls(0.0, -alpha, 0.5 - alpha, 0.25 * (1.0 - alpha) ** 2)
 
 
+def velocity_scale(c: Coefficients, h) -> jax.Array:
+    """``gamma / (beta h)``: the change of ``v_{n+1}`` per unit change of the unknown
+    ``x = beta h^2 a_{n+1}`` (``v_{n+1} = v_hat + gamma x / (beta h)``), which moves
+    ``q_{n+1}`` by one unit.
+
+    The step's equations of motion are taken times ``gamma h`` (``beta h^2`` times this),
+    and its velocity constraint unscaled, so that their residuals, like the position
+    constraint's, are in the units of the state they leave unsolved: of ``v`` for the
+    former, of ``q`` for the latter. A Newton stop on them (:func:`integrators.newton.newton`)
+    then brings ``v`` to the discrete solution at every ``h``. On equations of motion
+    taken times ``beta h^2``, their residual is in the units of ``q``; ``v``'s error is
+    ``gamma / (beta h)`` times it, and a tolerance fixed in those units leaves ``v`` ever
+    further from the discrete solution as ``h`` falls.
+    """
+    return c.gamma / (c.beta * h)
+
+
 class State(NamedTuple):
     """The state the method carries from step to step.
 
@@ -89,7 +106,8 @@ class AlphaMethod(FixedStep):
         self.check_choice("formulation", FORMULATIONS)
 
     def equations(self, mech: Mechanics, state: State, t, h):
-        """The scaled step equations from ``state`` at ``t``.
+        """The scaled step equations from ``state`` at ``t`` (their scaling:
+        :func:`velocity_scale`).
 
         Returns ``residual(z)``, the warm start ``z0`` (the previous acceleration-like
         variable and multipliers, ``mu = 0``) and ``advance(z) -> State`` at ``t + h``.
@@ -99,6 +117,7 @@ class AlphaMethod(FixedStep):
         m = mech.m
         q, v, a, acc, lam = state
         t1, bh2 = t + h, c.beta * h * h
+        w = velocity_scale(c, h)
         q_hat = q + h * v + h * h * (0.5 - c.beta) * a
         v_hat = v + h * (1 - c.gamma) * a
         # beta h^2 times the part of acc_{n+1} that the previous step fixes.
@@ -113,10 +132,10 @@ class AlphaMethod(FixedStep):
 
         def residual(z):
             q1, v1, acc1 = kinematics(z)
-            rows = (mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
-                    + mech.GT(q1, t1, z[1]), mech.g(q1, t1))
+            rows = (w * (mech.mass_times(q1, acc1) - bh2 * mech.force(t1, q1, v1)
+                         + mech.GT(q1, t1, z[1])), mech.g(q1, t1))
             if ggl:
-                rows += ((c.beta * h / c.gamma) * mech.vel_residual(q1, v1, t1),)
+                rows += (mech.vel_residual(q1, v1, t1),)
             return rows
 
         def advance(z):
@@ -139,10 +158,13 @@ class AlphaMethod(FixedStep):
         Gram matrix ``P_0 = G_0 G_0^T`` (``mu`` moves ``q`` along ``G_0^T`` without
         ``M^{-1}``): the last row fixes ``G_0 dx = -R_v``, so ``S_0 dLambda = c R_v - G_0
         M^{-1} R_M``, ``dx`` as before and ``P_0 dmu = R_v - R_g``. One factorisation of
-        ``S_0`` (and of ``P_0``) per step.
+        ``S_0`` (and of ``P_0``) per step. ``R_M`` and ``R_v`` are the residual's rows
+        divided by :func:`velocity_scale`: the equations of motion times ``beta h^2`` and
+        the velocity constraint times ``beta h / gamma``, the rows of this matrix.
         """
         coef = self.coefficients()
         cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
+        w = velocity_scale(coef, h)
         q = state.q
         ggl = FORMULATIONS[self.formulation]
         S0 = schur.factor(q, t)
@@ -150,22 +172,25 @@ class AlphaMethod(FixedStep):
         P0 = gram.factor(q, t) if ggl else None
 
         # The scaled unknowns are small (beta h^2 a); the constraint rows are computed from
-        # q and v, whose rounding reaches them as |G||q| and (beta h / gamma) |G||v|
-        # (Mechanics.rounding): a long chain's coordinates put that far above eps |z|.
+        # q and v, whose rounding reaches them as |G||q| and |G||v| (Mechanics.rounding): a
+        # long chain's coordinates put that far above eps |z|. The equations of motion's
+        # terms are gamma / (beta h) times the unknowns'.
         data = mech.rounding(q, t)
         if ggl:
-            data = jnp.maximum(data, coef.beta * h / coef.gamma * mech.rounding(q, t, state.v))
+            data = jnp.maximum(data, mech.rounding(q, t, state.v))
 
         solve = mech.mass_solver(q)   # factorised once per step, not per iteration
 
         def linear(z, r):
-            r_M, r_g = r[:2]
-            r_v = r[2] if ggl else r_g
+            # The rows as the iteration matrix above has them: the equations of motion
+            # and the velocity constraint times beta h / gamma.
+            r_M, r_g = r[0] / w, r[1]
+            r_v = r[2] / w if ggl else r_g
             MinvR = solve(r_M)
             dLam = schur.solve(S0, cm * r_v - mech.G_times(q, t, MinvR))
             dx = -(MinvR + solve(mech.GT(q, t, dLam))) / cm
             parts = (dx, dLam) + ((gram.solve(P0, r_v - r_g),) if ggl else ())
-            return parts, jnp.maximum(max_norm(z), data)
+            return parts, jnp.maximum(w * max_norm(z), data)
 
         return linear, S0.ok & P0.ok if ggl else S0.ok
 
@@ -194,7 +219,13 @@ class AlphaMethod(FixedStep):
         residual, z0, advance = self.equations(mech, state, t, h)
         linear, ok = (None, True) if schur.name == "dense" else self.simplified(
             mech, schur, state, t, h)
-        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear)
+        # The dense path solves with the rows of Bottasso's scaling (the equations of
+        # motion and the velocity constraint divided back by velocity_scale), whose
+        # conditioning does not grow as h falls; the stop reads the residual as it is.
+        w = velocity_scale(self.coefficients(), h)
+        rows = (w, 1.0) + ((w,) if FORMULATIONS[self.formulation] else ())
+        sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear,
+                     rows=rows)
         it = sol.iterations
         # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
         extra_G = int(FORMULATIONS[self.formulation])
@@ -272,15 +303,18 @@ class GeneralizedAlpha(AlphaMethod):
 
     The step equations are solved by Newton's method with the autodiff Jacobian for
     ``x = beta h^2 a_{n+1}``, ``Lambda = beta h^2 lambda_{n+1}`` (and ``mu``), of which
-    ``q_{n+1}``, ``v_{n+1}`` and ``\\ddot q_{n+1}`` are affine functions; the equations of
-    motion are multiplied by ``beta h^2`` and the velocity constraint by
-    ``beta h / gamma``. These are the scalings of Bottasso, Bauchau and Cardona (2007, SIAM
-    J. Sci. Comput. 29:397-414): the iteration matrix tends to
-    ``[c M, G^T; G, 0]`` (index 3) or ``[c M, G^T, 0; G, 0, G G^T; G, 0, 0]`` (index 2),
-    ``c = (1 - alpha_m)/(1 - alpha_f)``, as ``h -> 0`` instead of growing like ``1/h^2``,
-    and its blocks are ``M``, ``G`` and the force Jacobians. With the increment-like
-    unknown ``x``, not ``q_{n+1}``, the velocities do not inherit the round-off of ``q``
-    magnified by ``1/h``.
+    ``q_{n+1}``, ``v_{n+1}`` and ``\\ddot q_{n+1}`` are affine functions. With the
+    equations of motion multiplied by ``beta h^2`` and the velocity constraint by
+    ``beta h / gamma`` (the scalings of Bottasso, Bauchau and Cardona 2007, SIAM J. Sci.
+    Comput. 29:397-414) the iteration matrix tends to ``[c M, G^T; G, 0]`` (index 3) or
+    ``[c M, G^T, 0; G, 0, G G^T; G, 0, 0]`` (index 2), ``c = (1 - alpha_m)/(1 -
+    alpha_f)``, as ``h -> 0`` instead of growing like ``1/h^2``, and its blocks are ``M``,
+    ``G`` and the force Jacobians; the structured path solves with that matrix. The
+    residual that Newton's stop measures has those two rows multiplied by ``gamma / (beta
+    h)`` more, into the units of ``v`` (:func:`velocity_scale`), which leaves the
+    correction unchanged (the dense path's LU solves the row-scaled system). With the
+    increment-like unknown ``x``, not ``q_{n+1}``, the velocities do not inherit the
+    round-off of ``q`` magnified by ``1/h``.
 
     Parameters
     ----------
@@ -293,9 +327,10 @@ class GeneralizedAlpha(AlphaMethod):
     formulation : {"index3", "ggl"}
         Index-3 form, or the stabilised index-2 form.
     newton_tol : float
-        Max-norm tolerance of the scaled residual: it bounds ``|g|`` and, for ``ggl``,
-        ``beta h |G v + g_t| / gamma``. The default 1e-16 iterates to round-off (see
-        :func:`integrators.newton.newton`).
+        Max-norm tolerance of the scaled residual: it bounds ``|g|``, ``gamma h`` times
+        the residual of the equations of motion (about ``M`` times the change of ``v``
+        that it leaves) and, for ``ggl``, ``|G v + g_t|``. The default 1e-16 iterates to
+        round-off at every ``h`` (see :func:`integrators.newton.newton`).
     newton_max_iter : int
         Newton iteration limit per step; exceeding it fails the run.
     linear_solver : {"auto", "dense", "banded", "superlu", "kkt"}

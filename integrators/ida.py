@@ -2,7 +2,10 @@
 
 The problem's JAX functions give the residual ``F(t, y, y')`` and its iteration matrix
 ``dF/dy + cj dF/dy'`` (forward-mode autodiff, no finite differences); both are compiled once
-per case in ``prepare`` and handed to IDA through scikit-sundae. Large systems get the
+per case in ``prepare``. With the dense linear solver they are compiled to C with IDA's
+stepping loop (:mod:`integrators.sundials`), so that IDA runs at the speed of a C program;
+otherwise, and where that cannot be built, they are handed to IDA through scikit-sundae's
+Python callbacks. Large systems get the
 iteration matrix as a sparse matrix, its pattern traced from the residual and its values
 from compressed autodiff (:class:`linalg.pattern.SparseJacobian`), factorised by
 SUNDIALS' sparse direct solver (SuperLU_MT, with its own fill-reducing column ordering). IDA runs in one-step mode
@@ -27,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 from sksundae.ida import IDA as SundialsIDA
 
+from integrators import sundials
 from integrators.base import Grid, Integrator
 from integrators.record import Recorder
 from linalg.compiled import compile_lifted
@@ -114,6 +118,12 @@ EXCLUDED = 1e30
 #: IDA's direct linear solvers: ``auto`` picks ``sparse`` for more than
 #: :data:`linalg.schur.DENSE_MAX` constraints and ``dense`` otherwise.
 LINEAR_SOLVERS = ("auto", "dense", "lapackdense", "sparse")
+
+#: What a native run records as its sampling.
+NATIVE_SAMPLING = "every internal step (IDA one-step mode, native driver)"
+
+#: ``driver`` option values: who calls IDA (:class:`IDA`).
+DRIVERS = ("auto", "native", "scikit-sundae")
 
 #: ``jacobian`` option -> whether our autodiff iteration matrix is handed to IDA (else IDA
 #: forms it by difference quotients of the residual).
@@ -370,6 +380,13 @@ class IDA(Integrator):
     jacobian : {"autodiff", "difference-quotient"}
         The iteration matrix: ours (forward-mode autodiff, the default) or IDA's
         difference quotients of the residual (for comparison).
+    driver : {"auto", "native", "scikit-sundae"}
+        Who calls IDA. ``native`` (:mod:`integrators.sundials`) compiles the residual and
+        the iteration matrix to C with the stepping loop, so that IDA runs at the speed of
+        a C program; it takes the dense linear solver only. ``scikit-sundae`` calls back
+        into the compiled JAX functions from Python at every residual. ``auto`` takes
+        ``native`` where it can be built (a C compiler, a system the code generator
+        knows, ``linsolver`` dense) and says in the run's ``sampling`` which ran.
     """
 
     adaptive: ClassVar[bool] = True
@@ -387,6 +404,7 @@ class IDA(Integrator):
     max_step: float = 0.0
     linsolver: str = "auto"
     jacobian: str = "autodiff"
+    driver: str = "auto"
 
     family: ClassVar[str] = "BDF (SUNDIALS IDA)"
     # nominal_order stays None: variable-order BDF (orders 1 to max_order, chosen per step).
@@ -403,6 +421,9 @@ class IDA(Integrator):
         if self.jacobian != "autodiff" and self.linsolver == "sparse":
             raise ValueError(f"{name}: linsolver = 'sparse' needs jacobian = 'autodiff'")
         self.check_choice("linsolver", LINEAR_SOLVERS)
+        self.check_choice("driver", DRIVERS)
+        if self.driver == "native" and self.linsolver not in ("auto", "dense"):
+            raise ValueError(f"{name}: driver = 'native' takes linsolver = 'dense' only")
         if not 1 <= self.max_order <= 5:
             raise ValueError(f"{name}: max_order = {self.max_order} must lie in 1..5")
         for option in ("max_steps", "max_nonlin_iters", "max_conv_fails"):
@@ -429,8 +450,8 @@ class IDA(Integrator):
         if linsolver != "sparse" or m <= RANK_CHECK_MAX:
             # Redundant constraints make the iteration matrix singular. SUNDIALS' dense LU
             # does not notice, and the run would return meaningless states as a success;
-            # SuperLU_MT does not stop either: on bricard it cut the step to 1e-30 over
-            # 1.4 million steps (337 s) before failing. Above RANK_CHECK_MAX constraints
+            # SuperLU_MT does not stop either: on bricard it cuts the step to 1e-30 over
+            # more than a million steps before failing. Above RANK_CHECK_MAX constraints
             # (sparse only) the dense rank would cost more than the run.
             rank = int(np.linalg.matrix_rank(np.asarray(mech.G(jnp.asarray(case.q0),
                                                                jnp.asarray(t0)))))
@@ -450,6 +471,64 @@ class IDA(Integrator):
         assert r0.dtype == np.float64 and J0.dtype == np.float64, "IDA must run in float64"
         initial_residual = float(np.max(np.abs(r0)))
         n_mult = form.multiplier_blocks * m
+        atol = np.concatenate([np.full(2 * n, self.atol), np.full(n_mult, self.multiplier_atol)])
+        algebraic = range(2 * n, 2 * n + n_mult)
+        native, why = None, ""
+        if self.driver != "scikit-sundae" and linsolver == "dense":
+            try:
+                native = sundials.build(FORMULATIONS[self.formulation].residual(mech),
+                                        len(y0), JACOBIANS[self.jacobian])
+            except sundials.NotNative as exc:
+                if self.driver == "native":
+                    raise
+                why = f"; native driver not built: {exc}"
+        # The run records IDA's linear solver and the size of G's pattern (the iteration
+        # matrix's is larger: it holds G, G^T and the derivatives of G^T lambda).
+        solver_record = dict(linear_solver=linsolver,
+                             pattern_nnz=mech.schur("auto").nnz if sparse else None)
+        recorder = Recorder(mech, grid)
+        if native is not None:
+            settings = dict(t0=t0, y0=y0, yp0=yp0, rtol=self.rtol, atol=atol,
+                            algebraic=algebraic, jacobian=JACOBIANS[self.jacobian],
+                            max_order=self.max_order, max_steps=self.max_steps,
+                            max_nonlin_iters=self.max_nonlin_iters,
+                            max_conv_fails=self.max_conv_fails, first_step=self.first_step,
+                            min_step=self.min_step, max_step=self.max_step, tstop=t_end)
+
+            def solve_native():
+                if redundant:
+                    recorder.start(t0, y0[:n], y0[n:2 * n])
+                    return recorder.trajectory(redundant, t0, y0[:n], y0[n:2 * n],
+                                               {"n_steps": 0}, NATIVE_SAMPLING, **solver_record)
+                solver = native.solver(**settings)
+                recorder.start(t0, y0[:n], y0[n:2 * n])
+                t, y, steps, failure = t0, y0, 0, ""
+                while t < t_end:
+                    if steps >= self.max_steps:
+                        failure = (f"IDA: max_steps = {self.max_steps} internal steps reached "
+                                   f"at t = {t:.6g} before t_end = {t_end:.6g}")
+                        break
+                    ts, ys, flag, t_now = solver.steps(self.max_steps - steps)
+                    if len(ts):
+                        recorder.extend(ts, ys[:, :n], ys[:, n:2 * n])
+                        steps += len(ts)
+                        t, y = float(ts[-1]), ys[-1].copy()
+                    if flag < 0:
+                        failure = (f"IDA failed at t = {t_now:.6g} after {steps} steps: "
+                                   f"{solver.failure(flag)}")
+                        t, y = t_now, solver.state()
+                        break
+                work = solver.counts()
+                solver.close()
+                counts = {"n_steps": steps, "n_rejected": work["trials"] - steps,
+                          "n_f_evals": work["calls"], "n_jac_evals": work["jacobians"],
+                          "n_newton": work["residuals"], "n_lin_solves": work["residuals"]}
+                return recorder.trajectory(failure, t, y[:n], y[n:2 * n], counts,
+                                           NATIVE_SAMPLING, extra={"initial_residual":
+                                                                   initial_residual},
+                                           **solver_record)
+
+            return solve_native
         callbacks = Callbacks(residual, matrix)
         with warnings.catch_warnings():
             # The binding warns that the pattern is not used for difference quotients:
@@ -458,20 +537,12 @@ class IDA(Integrator):
             ida = SundialsIDA(
                 callbacks.residual,
                 jacfn=callbacks.jacobian if JACOBIANS[self.jacobian] else None,
-                rtol=self.rtol,
-                atol=np.concatenate([np.full(2 * n, self.atol),
-                                     np.full(n_mult, self.multiplier_atol)]),
-                algebraic_idx=list(range(2 * n, 2 * n + n_mult)),
+                rtol=self.rtol, atol=atol, algebraic_idx=list(algebraic),
                 calc_initcond=None, first_step=self.first_step, min_step=self.min_step,
                 max_step=self.max_step, linsolver=linsolver, max_order=self.max_order,
                 max_num_steps=self.max_steps, max_nonlin_iters=self.max_nonlin_iters,
                 max_conv_fails=self.max_conv_fails, **sparse)
-        # The run records IDA's linear solver and the size of G's pattern (the iteration
-        # matrix's is larger: it holds G, G^T and the derivatives of G^T lambda).
-        solver_record = dict(linear_solver=linsolver,
-                             pattern_nnz=mech.schur("auto").nnz if sparse else None)
-        recorder = Recorder(mech, grid)
-        sampling = "every internal step (IDA one-step mode)"
+        sampling = f"every internal step (IDA one-step mode, scikit-sundae{why})"
 
         def solve():
             if redundant:
@@ -487,8 +558,8 @@ class IDA(Integrator):
             nfev = njev = 0
             # The binding prints SUNDIALS' own error text (which says where and with what
             # step size IDA gave up); it is captured for the failure message.
-            sundials = io.StringIO()
-            with contextlib.redirect_stdout(sundials):
+            printed = io.StringIO()
+            with contextlib.redirect_stdout(printed):
                 while t < t_end:
                     if steps >= self.max_steps:
                         failure = (f"IDA: max_steps = {self.max_steps} internal steps reached "
@@ -497,7 +568,7 @@ class IDA(Integrator):
                     out = ida.step(t_end, "onestep", t_end)
                     nfev, njev = out.nfev, out.njev
                     if not out.success:
-                        detail = " ".join(sundials.getvalue().split())
+                        detail = " ".join(printed.getvalue().split())
                         failure = (f"IDA failed at t = {float(out.t):.6g} after {steps} steps: "
                                    f"{out.message} (flag {out.status})"
                                    + (f"; SUNDIALS: {detail}" if detail else ""))

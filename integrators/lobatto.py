@@ -44,10 +44,8 @@ class LobattoIIIAIIIB(FixedStep):
     (and ``H_q`` taken at ``V_j``): the same equations, whose residual then multiplies by
     the mass where it would otherwise solve with it. For a configuration-dependent mass
     that is a product in place of a factorisation of ``M(Q_j)`` at every stage and
-    iteration: lobatto3ab3's step took 0.68, 0.74 and 0.63 times as long on rigid-chain
-    with N = 64, 1024 and 16384 (structured path) and 0.82 to 0.88 on rigid-body,
-    andrews, flyball-governor and flexible-spacecraft (dense path), and as long on
-    constant masses (the two programs side by side in one process each, load 1 to 2). For
+    iteration, on the structured and the dense path alike; a constant mass costs the
+    same either way. For
     a constant mass Newton's corrections are those of the momenta divided by the mass
     (Newton's method is affine invariant), but for the round-off where its stopping test
     ends them.
@@ -211,8 +209,7 @@ class LobattoIIIAIIIB(FixedStep):
                   "n_lin_solves": it}
         # v1 and M(q1)'s factors go to the next step: the loop observes v1 and the next
         # step starts from it, so that a configuration-dependent mass is factorised once
-        # per step (0.95 and 0.98 times the step with the observation on rigid-chain:N=1024
-        # and 16384, side by side in one process).
+        # per step.
         return ((q1, p1, v1, Lam[-1], S1, K1), newton_failure(sol.converged, ok),
                 sol.residual, counts)
 

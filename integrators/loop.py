@@ -7,33 +7,30 @@ first failed step. Everything runs inside compiled ``lax.while_loop``\\ s: no Py
 step, and memory independent of the number of steps. The metrics themselves
 (:mod:`benchmarks.metrics`) are computed from these records after the solve; taking the
 per-step values inside the loop is what keeps memory bounded (keeping every state for
-later would not), and its cost is part of the timed solve: measured as the median of
-three solves with the measurement replaced by zeros, about 6% of RATTLE's time on
-sps-receiver and 19% on the pendulum (the cheapest steps), and within the timing noise
-for lobatto3ab3.
+later would not), and its cost is part of the timed solve, a noticeable share only for
+the cheapest steps (RATTLE on the pendulum).
 
 Speed
 -----
 Under :data:`KERNEL_FLAG` XLA:CPU compiles the whole time loop, the methods' Newton loops
 included, into one native kernel. Without it XLA's runtime dispatches every fused
 operation of the loop body on its own, tens of nanoseconds each, which is most of a small
-problem's step (RATTLE on sps-receiver runs about 8 times faster with the flag: see
-``benchmarks/perf/throughput.py``, which has ``--xla-default`` to measure without it). The
+problem's step (``benchmarks/perf/throughput.py`` measures it, with ``--xla-default``
+without the flag). The
 flag is read once, when JAX creates its CPU client, so it has to be in ``XLA_FLAGS``
 before the process first uses JAX (:func:`kernel_environment`; the benchmark workers
 start with it). Results agree to round-off with and without it (bit for bit on the
 seed-sps and quick suites and for 1e6 RATTLE steps; 1e6 steps of lobatto3ab3 differ in
 the last bits). Scatter, sort and custom calls (LAPACK, which
 :func:`integrators.newton.solve` calls for systems larger than 1 x 1) inside the loop
-keep XLA from forming the kernel; such loops run as before.
+keep XLA from forming the kernel; such loops run op by op.
 
 The steps run in *segments*: an inner loop takes the steps up to the next window end or
 sample step, whichever comes first, carrying only the method's state, the running maxima
 of the segment and the work counters; an outer loop (one iteration per segment, at most
 ``n_windows + n_samples`` of them) folds the segment's maxima into its window and writes
-the sample. The per-step work thus never touches the window and sample arrays: on
-sps-receiver that made the loop a fifth faster than updating them at every step under the
-flag, and twice as fast without it.
+the sample. The per-step work thus never touches the window and sample arrays, which
+updating them at every step would cost on small problems.
 
 Ensembles
 ---------
@@ -45,12 +42,10 @@ that has failed keeps its last good state, step count, maxima and samples. It is
 computed, since the lanes run in step, and its result dropped; from its own state it
 would fail again, its Newton loop running to the iteration limit, and a mapped Newton
 loop runs until its slowest lane is done: every lane would pay that limit at every later
-step. So a failed lane steps from a live lane's state instead: 64 lanes of rattle on
-``chain:N=8``, 1e4 steps of ``h = 0.01``, of which 12 lanes fail between ``t = 24`` and
-``92``, took 38.3 s before and 4.6 to 5.0 s after, every lane's result the same bit for bit.
-A lane keeps its state where its step failed by one select over the lanes, skipped while
-every lane's step is good: 1024 lanes of rattle on the pendulum ran 1.9e7 lane-steps/s,
-against 1.57e7 with the whole loop mapped over the lanes (one core, scratch script).
+step. So a failed lane steps from a live lane's state instead, which leaves every lane's
+result the same bit for bit. A lane keeps its state where its step failed by one select
+over the lanes, skipped while every lane's step is good, which is cheaper than mapping
+the whole loop over the lanes.
 
 Reuse
 -----
@@ -90,11 +85,8 @@ KERNEL_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_thresho
 
 #: XLA:CPU option: emit fusions with XLA's LLVM IR emitters instead of its newer MLIR
 #: fusion emitters. Compiling is most of a suite's set-up, and this takes about a third
-#: less CPU time to compile (andrews / radau5 18.1 and 18.8 s against 10.5 and 12.6 s;
-#: car-axis / genalpha 4.4 against 2.1 to 2.8 s; flyball-governor / hht 5.8 and 6.6
-#: against 3.2 to 4.4 s: ``benchmarks/perf/compile_profile.py``, CPU time, load about 5),
-#: with the same kernels' speed (rattle on sps-receiver against C: 0.85 against 0.74 of
-#: C per CPU second in one noisy pair of runs, the same Newton iterations and residuals).
+#: less CPU time to compile (``benchmarks/perf/compile_profile.py``), with kernels as fast
+#: and the same Newton iterations and residuals.
 COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 #: The last jaxlib release whose XLA knows :data:`COMPILE_FLAG`: jaxlib 0.11 removed the
 #: option, and XLA aborts a process whose ``XLA_FLAGS`` names an option it does not know
@@ -103,13 +95,9 @@ COMPILE_FLAG_UNTIL = (0, 10)
 
 #: XLA:GPU options: record while loops and conditionals into CUDA graphs (command buffers)
 #: with their predicates evaluated on the device, so that a Newton loop's test does not go
-#: back to the host at every iteration. Measured on one H200 (JAX 0.11.2, 1e4 steps of
-#: ``h = 0.01``, ``benchmarks/perf/ensemble.py``): rattle on the pendulum 5.6e6 -> 1.55e7
-#: lane-steps/s at 1024 lanes and 5.4e7 -> 1.26e8 at 16384, its 256 receiver lanes still
-#: within 8.1e-13 of single runs on the CPU; lobatto3ab3 and the chain's dense solves not
-#: faster (1.33e6 and 1.30e6 lane-steps/s at 1024 lanes), measured before the fixes of a
-#: hoisted QR (:func:`linalg.dense.rarely`) and of failed lanes' Newton (module notes),
-#: which may be why. XLA:CPU ignores these options.
+#: back to the host at every iteration; results stay within round-off of single runs on
+#: the CPU (``benchmarks/perf/ensemble.py`` measures the gain). XLA:CPU ignores these
+#: options.
 COMMAND_BUFFER_FLAGS = ("--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL",
                         "--xla_gpu_graph_min_graph_size=1")
 
@@ -298,9 +286,14 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
         def body(state):
             k, lane, carry, code, resid, peak, counts = state
             active = at(k, lane, code)
-            new, code1, resid1, inc, (q, v) = tried(stand_in(active, carry), t0 + k * h, h)
+            t = t0 + k * h
+            new, code1, resid1, inc, (q, v) = tried(stand_in(active, carry), t, h)
             good = active & (code1 == 0)
-            m = measure(t0 + (k + 1) * h, q, v, E0, I0)
+            # Measured at t + h, the time every method imposes its end conditions at (its
+            # last stage's time), not at t0 + (k + 1) h: the two differ by an ulp of t,
+            # and a rheonomic |g| read at the other time is |g_t| times that ulp, far
+            # above g's round-off where t is large.
+            m = measure(t + h, q, v, E0, I0)
             # A lane keeps its state where it was not live or its step failed.
             return (k + 1, lane + good.astype(lane.dtype), select(good, new, carry),
                     jnp.where(active, code1, code), jnp.where(active, resid1, resid),
@@ -377,10 +370,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     fallback too, and the lanes that failed in it go on with it from the steps they failed
     at, as an ensemble of their own (its loop starts at the first of those steps, and each
     lane waits until the loop reaches its own: :func:`_loop`). An ensemble compiled with
-    the fallback paid for it where no lane took it: 1024 lanes of lobatto3ab3 on the
-    pendulum set up in 2.0 to 2.5 s with it and 1.5 to 1.8 s without (a warm compilation
-    cache), and its step alone took 1.46 us per lane with it and 0.78 without (one core,
-    scratch script), though in the whole loop the rates were alike.
+    the fallback would pay for it in set-up and per step where no lane takes it.
 
     Parameters
     ----------
@@ -460,11 +450,8 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
 
     def regroup(w, state, qv, E0, I0, pick):
         # The compiled functions that take the lanes `pick` (w of them) out of the state
-        # and put their results back, compiled as set-up like the loop they serve. Run
-        # op by op, they cost the first solve that retook lanes 1.5 s of compiling and
-        # each later one about 22 ms of dispatch, which the solve's timing charged to the
-        # method (16 lanes of genalpha on the pendulum, h = 0.2 to t = 20: 32 ms per
-        # solve against 8 ms now, load 1.5).
+        # and put their results back, compiled as set-up like the loop they serve: run
+        # op by op, their compiling and dispatch would be charged to the method's timing.
         tag = None if cache_key is None else (cache_key, "regroup", w)
         pair = _LOOPS.get(tag) if tag is not None else None
         if pair is None:

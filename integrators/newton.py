@@ -62,10 +62,10 @@ def deferred_fallback() -> Iterator[None]:
     this block: where simplified Newton does not converge, the solve fails.
 
     The fallback (:func:`krylov_linear`) is most of a structured time loop's program and is
-    rarely taken: XLA took 64 s to compile RATTLE's loop on ``rigid-chain:N=4`` with it and
-    21 s without (``benchmarks/perf/compile_profile.py``, one core, load about 1). So the
-    time loop compiles its steps this way first, and the loop with the fallback only when a
-    step fails, continuing from that step (:func:`integrators.loop.march`)."""
+    rarely taken, and it is most of XLA's compilation time of such a loop (``python -m
+    benchmarks.perf.compile_profile`` measures it). So the time loop compiles its steps
+    this way first, and the loop with the fallback only when a step fails, continuing from
+    that step (:func:`integrators.loop.march`)."""
     token = _deferred.set(True)
     try:
         yield
@@ -79,12 +79,19 @@ def max_norm(tree) -> jax.Array:
                                           for a in jax.tree_util.tree_leaves(tree)))
 
 
-def dense_linear(residual: Callable[[jax.Array], jax.Array]) -> Linear:
-    """Newton's correction with the dense autodiff Jacobian, solved by :func:`solve`."""
+def dense_linear(residual: Callable[[jax.Array], jax.Array],
+                 rows: jax.Array | None = None) -> Linear:
+    """Newton's correction with the dense autodiff Jacobian, solved by :func:`solve`;
+    with ``rows``, the system's rows divided by them first (an equilibration: the same
+    correction, from a matrix whose conditioning does not depend on the residual's row
+    scaling)."""
 
     def linear(z, r):
         J = jax.jacfwd(residual)(z)
-        return solve(J, -r), jnp.max(jnp.abs(J) @ jnp.abs(z))
+        terms = jnp.max(jnp.abs(J) @ jnp.abs(z))
+        if rows is not None:
+            J, r = J / rows[:, None], r / rows
+        return solve(J, -r), terms
 
     return linear
 
@@ -103,10 +110,8 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
     singular configuration, where the constraint forces change fastest).
 
     BiCGSTAB, not GMRES: with JAX's GMRES (either solve method) in it the time loop no
-    longer compiled into one native kernel, and RATTLE's steps on chain:N=16 ran eight
-    times slower (0.13 s against 0.017 s per solve, measured with
-    ``benchmarks/perf/compile_profile.py``); BiCGSTAB (JAX's, then) left them as fast, and
-    XLA's compilation of the loop grew from 2.1 s to 4.1 s.
+    longer compiles into one native kernel and the steps run several times slower;
+    BiCGSTAB leaves the steps as fast (``python -m benchmarks.perf.compile_profile``).
     """
 
     def linear_exact(z, r):
@@ -123,89 +128,63 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
 
 def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
            max_iter: int, linear: Linear | None = None,
-           refactor: Callable[[Any], Linear] | None = None) -> NewtonResult:
+           refactor: Callable[[Any], Linear] | None = None,
+           rows: Any | None = None) -> NewtonResult:
     """Solve ``residual(z) = 0`` by Newton's method.
 
-    ``linear`` gives each correction; by default the exact autodiff Jacobian, densely
-    (:func:`dense_linear`). A structured method passes an approximate Jacobian instead
-    (simplified Newton: one factorisation per step, linear convergence), under the same
-    convergence test but for one exit (below). Where simplified Newton does not converge
-    (it stops halving the residual above its round-off floor, diverges, meets a non-finite
-    residual or runs out of its ``max_iter`` corrections), Newton's method with the exact
-    Jacobian takes over for up to ``max_iter`` more (:func:`krylov_linear`), from the better
-    of ``z0`` and the last finite iterate, preconditioned by ``refactor(z)`` at that
-    iterate where given (the approximate Jacobian factorised afresh: the frozen one may be
-    nearly singular, as at a singular configuration of a mechanism) and by ``linear``
-    otherwise; only when that fails too has the solve failed. The structured path is then
-    as robust as the dense one, whose Newton has the exact Jacobian throughout, and a step
-    that simplified Newton solves costs no more at run time (the compiled program holds
-    both iterations: see :func:`krylov_linear` for what that costs; inside
-    :func:`deferred_fallback` it holds simplified Newton alone, and a time loop compiles
-    the fallback only for a run that needs it).
+    Iteration: ``z <- z + dz`` with ``dz`` from ``linear`` (default: the exact autodiff
+    Jacobian, dense, :func:`dense_linear`). A structured method passes an approximate,
+    once-factorised Jacobian instead (simplified Newton, linear convergence).
 
-    Converged when ``||residual(z)||_inf <= tol``. The test is on the residual, not on the
-    correction, so that ``tol`` bounds the constraint violation left in the solution. More
-    exits count as converged because no further iteration can gain anything: the
-    correction is at round-off (``||dz||_inf <= 4 eps (1 + ||z||_inf)``); the residual has
-    stopped contracting (less than halved) within a window of its round-off floor
-    ``eps (1 + terms)``, with ``terms`` the magnitude of the terms the residual is computed
-    from (the second value ``linear`` returns; ``max_i sum_j |J_ij| |z_j|`` with the last
-    Jacobian ``J`` by default); and, with the exact dense Jacobian, an iteration contracted
-    the residual by at least :data:`QUADRATIC` to within :data:`AT_FLOOR` times that floor.
-    Scaling with the terms, not with ``|z|`` alone, matters where large forces cancel (stiff
-    springs, large multipliers): there the residual cannot fall below ``eps`` times those
-    forces. A ``tol`` below round-off (such as 1e-16) therefore means "iterate to
-    round-off"; a larger ``tol`` does not widen the window.
+    Stopping rule: converged when ``||residual(z)||_inf <= tol`` (on the residual, so that
+    ``tol`` bounds the constraint violation left), or when no iteration can gain more:
 
-    A residual that quadratic convergence brought to its floor ends the iteration at once:
-    waiting for it to stop halving cost one more iteration to learn nothing, and it halves
-    by chance at the floor (rounding moves it by a unit), which cost another. RATTLE on the
-    pendulum took 2.58 iterations per step without this exit, 2.00 with it. Under
-    ``jax.vmap`` a Newton loop runs until its slowest lane is done, so an ensemble pays the
-    worst lane's count at every step: over 1024 lanes 4.01 iterations per step without it,
-    2.0 to 2.2 with it. The contraction is part of the test because a floor estimated from
-    ``terms`` can be far above the residual's rounding where the iteration is in trouble:
-    on the undamped index-3 generalized-alpha method, whose multipliers blow up
-    (``tests/test_genalpha.py``), a residual still contracting slowly fell below it, and
-    the run went on with velocity errors of 1e5 instead of failing. Simplified Newton and
-    its fallback do not take this exit: their ``terms`` bound the rounding of every datum
-    the residual depends on, a floor that can lie well above the residual's own rounding,
-    and stopping at twice it moved the structured path's solutions enough that the
-    perturbed, chaotic ``sps-lattice:N=16,K=8,perturb=0.01`` (RATTLE, h = 0.005) met a
-    step without a solution at t = 10.3 instead of running to t = 20.
+    - the correction is at round-off, ``||dz||_inf <= 4 eps (1 + ||z||_inf)``;
+    - the residual is less than halved within a window of its round-off floor
+      ``eps (1 + terms)``, ``terms`` being the magnitude of the terms it is computed from
+      (the second value ``linear`` returns, by default ``max_i sum_j |J_ij| |z_j|``). The
+      floor scales with the terms, not with ``|z|``, because large cancelling forces
+      (stiff springs, large multipliers) keep the residual at ``eps`` times them. The
+      window is :data:`EXACT_WINDOW` floors for the exact Jacobian (quadratic: a stall
+      means round-off) and :data:`SIMPLIFIED_WINDOW` for simplified Newton, whose rate
+      nears 1 near singular configurations, so that a stall far above round-off hands
+      over to the fallback instead;
+    - exact dense Jacobian only: an iteration contracted the residual by at least
+      :data:`QUADRATIC` to within :data:`AT_FLOOR` floors. Waiting for a stall there costs
+      iterations that learn nothing, and under ``jax.vmap`` every lane pays the slowest
+      lane's count. The contraction is required because a floor estimated from ``terms``
+      can lie far above the residual's rounding when the iteration is in trouble (the
+      undamped index-3 generalized-alpha method, ``tests/test_genalpha.py``). Simplified
+      Newton does not take this exit: its ``terms`` bound the rounding of every datum the
+      residual depends on, and stopping at twice that floor moves solutions of chaotic
+      problems enough to lose a step;
+    - simplified Newton only: a residual already within the window reaches the floor
+      (``r_k <= floor`` after ``r_{k-1} <= window floor``); its halving there is the
+      rounding of the last units.
 
-    Simplified Newton does end where a residual already within the window reaches the
-    floor itself (``r_k <= floor`` after ``r_{k-1} <= window floor``): the halving seen
-    there is the rounding of the last units (2.2e-16 to 1.1e-16), and waiting for a
-    residual that does not halve cost one or two iterations more, more often on some lanes
-    than on others. The residual this accepts is at most the floor, below what the stall
-    test accepts, and only after one already in the window. lobatto3ab3 on the pendulum
-    (h = 0.01, 1024 lanes, 1000 steps) took 5.43 iterations per lane and step with the
-    slowest lane at 6.78 on average, and 4.79 and 5.00 with this exit; 1024 lanes ran 5.3e5
-    to 5.7e5 lane-steps/s against 4.0e5 to 4.2e5 (load 1.0, two runs each); RATTLE on the
-    perturbed ``sps-lattice`` (``benchmarks.perf.robustness``, structured path) finished as
-    before, with 8.53 iterations per step against 9.58.
+    ``tol`` below round-off (such as 1e-16) means "iterate to round-off"; a larger ``tol``
+    does not widen the window.
 
-    The window is :data:`EXACT_WINDOW` times the floor for Newton with the exact Jacobian,
-    which converges quadratically, so that a residual that stops halving has reached what
-    the arithmetic allows and the window only covers what the floor estimate leaves out.
-    It is :data:`SIMPLIFIED_WINDOW` times the floor for simplified Newton, which converges
-    linearly at a rate that nears 1 where the Jacobian moves away from the frozen one (near
-    singular configurations): a residual that stops halving there may be far above
-    round-off, so it is accepted only close to a floor that ``linear`` bounds completely
-    (including the rounding of data the residual depends on besides ``z``), and above it
-    the exact Jacobian takes over at once.
+    Fallback: where simplified Newton does not converge (it stalls above the window,
+    diverges, meets a non-finite residual or uses its ``max_iter`` corrections), Newton
+    with the exact Jacobian (:func:`krylov_linear`) takes over for up to ``max_iter`` more
+    from the better of ``z0`` and the last finite iterate, preconditioned by ``refactor(z)``
+    where given (the approximate Jacobian factorised afresh: the frozen one may be nearly
+    singular) and by ``linear`` otherwise. The structured path is thus as robust as the
+    dense one, and a step that simplified Newton solves costs no more at run time; inside
+    :func:`deferred_fallback` the fallback is left out of the program.
 
-    ``z`` may be one array or a tuple (any pytree) of arrays, and ``residual`` returns one
-    of its own structure; every norm is the max-norm over all their entries. Simplified
-    Newton works on the blocks as they are, so that a method keeps its unknowns (stage
-    positions, momenta, multipliers) in separate arrays: packed into one vector, every
-    iteration sliced it and concatenated the residual and the correction, and on small
-    systems that cost more than the arithmetic. lobatto3ab3's step took 1.75 to 1.84 us
-    packed and 0.97 to 1.05 us in blocks on the pendulum, 1.18 to 1.93 against 0.87 to 1.11
-    us on sps-receiver (one core, two runs each, scratch script). Newton with the exact
-    Jacobian (the dense path, the fallback) works on the leaves flattened into one vector
-    (``jax.flatten_util.ravel_pytree``), in their order.
+    ``z`` may be any pytree of arrays and ``residual`` returns one of its structure; every
+    norm is the max-norm over all entries. Simplified Newton works on the blocks as they
+    are (stage positions, momenta, multipliers in separate arrays): packing them into one
+    vector costs a slice and a concatenation per iteration, more than the arithmetic on
+    small systems. Newton with the exact Jacobian works on the leaves flattened into one
+    vector (``jax.flatten_util.ravel_pytree``), in their order.
+
+    ``rows`` (a pytree of the residual's structure, each leaf a scalar or an array of its
+    row's shape) equilibrates the dense exact Jacobian's solve: its rows are divided by
+    them before the factorisation. The correction is the same; the stop reads the
+    residual as ``residual`` returns it.
 
     Returns the iterate, whether it converged, the number of iterations (each one
     correction) and the final residual norm.
@@ -213,10 +192,8 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
 
     # The loop's state is (z, r, |r|, done, go, iterations): each iteration decides
     # whether it was the last as it computes the new residual, so that the loop's
-    # condition only reads a flag. Under vmap the norms and tests recomputed in a
-    # separate condition were more passes over every lane per iteration: 1024 lanes of
-    # RATTLE's step on the pendulum ran 2.5e7 lane-steps/s with them, 3.0e7 without
-    # (scratch script, one core; one trajectory alike either way).
+    # condition only reads a flag: under vmap, norms and tests recomputed in a separate
+    # condition are more passes over every lane per iteration.
     def verdict(z, r_norm, r_prev, dz_norm, terms, it, limit, window, contracting, quick):
         floor = EPS * (1.0 + terms)
         halved = r_norm <= 0.5 * r_prev
@@ -262,7 +239,9 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
             return ravel_pytree(residual(unravel(x)))[0]
 
         if linear is None:
-            solver = dense_linear(flat)
+            weights = None if rows is None else ravel_pytree(jax.tree_util.tree_map(
+                lambda w, a: jnp.broadcast_to(w, jnp.shape(a)), rows, r))[0]
+            solver = dense_linear(flat, weights)
         else:
             def precondition(x, rx):
                 dz, terms = linear(unravel(x), unravel_r(rx))

@@ -24,11 +24,11 @@ import numpy as np
 from numpy.polynomial import Polynomial
 
 from integrators.base import Failure, Grid, Integrator
-from integrators.ida import consistent_values, ggl_residual
+from integrators.ida import EXCLUDED, consistent_values, ggl_residual
 from integrators.loop import CACHE_SIZE, put
 from integrators.record import Recorder, batch_length
 from linalg.compiled import compile_lifted
-from linalg.dense import lu_factor, lu_solve
+from linalg.dense import LU, RANK_RTOL, lu_factor, lu_solve, power_of_two_scale, rarely
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -187,6 +187,8 @@ class Params(NamedTuple):
     t_end: jax.Array
     rtol: jax.Array
     atol: jax.Array
+    multiplier_atol: jax.Array
+    thet: jax.Array
     fnewt: jax.Array
     newton_tol: jax.Array
     safety: jax.Array
@@ -235,10 +237,15 @@ class LoopState(NamedTuple):
 #: :mod:`integrators.base` but ``n_steps``, and the LU decompositions (pairs).
 WORK = ("n_rejected", "n_f_evals", "n_jac_evals", "n_newton", "n_lin_solves", "n_lu")
 
-#: Newton's contraction factor up to which the Jacobian is kept for the next step, and the
-#: step-size ratios within which the step (and the factorisations) are kept (RADAU5's
-#: defaults, Hairer and Wanner 1996, section IV.8).
-THETA_KEEP = 1e-3
+#: Newton's contraction factor up to which the Jacobian is kept for the next step (the
+#: default of :attr:`RadauIIA.thet`, RADAU5's ``WORK(3)``), and the step-size ratios within
+#: which the step (and the factorisations) are kept (RADAU5's, Hairer and Wanner 1996,
+#: section IV.8). RADAU5's default ``thet`` of 1e-3 lies below the contraction that Newton
+#: reaches here even with a Jacobian from the step's start, so it re-evaluated the
+#: Jacobian, and refactorised, at nearly every step; its documentation suggests 0.1 where
+#: Jacobians are costly. At 0.05 a Jacobian serves several steps while the step count and
+#: the final errors barely move, and slow contractions still ask for a fresh one.
+THETA_KEEP = 0.05
 KEEP_RATIOS = (1.0, 1.2)
 #: Bounds of the ratio of a new step size to the last.
 FACTOR_MIN, FACTOR_MAX = 0.2, 8.0
@@ -256,11 +263,108 @@ UNDERFLOW_ULPS = 16
 CAUSES = (Failure.NONE, Failure.UNDERFLOW, Failure.NEWTON, Failure.NON_FINITE)
 
 
+#: Largest stage system factorised and solved by the unrolled elimination of
+#: :func:`inline_lu_factor` rather than by LAPACK: a library call is opaque to XLA, so each
+#: one costs a call and a copy, which for a few unknowns is most of its price; unrolled,
+#: the elimination is ``N^3/3`` multiply-adds fused into the loop body, and its code grows
+#: like ``N^2``.
+INLINE_MAX = 12
+
+
+def inline_lu_factor(A: jax.Array) -> LU:
+    """:func:`linalg.dense.lu_factor` (the same power-of-two equilibration ``D_r A D_c``
+    and rank test) by Gaussian elimination with partial pivoting unrolled over the ``N``
+    columns, in plain array operations; ``piv`` is the row permutation (``P A = L U`` with
+    ``(P A)_i = A_{piv_i}``), not LAPACK's sequence of swaps. For :func:`inline_lu_solve`."""
+    N = A.shape[0]
+    r = power_of_two_scale(jnp.max(jnp.abs(A), axis=1))
+    c = power_of_two_scale(jnp.max(jnp.abs(A * r[:, None]), axis=0))
+    As = A * r[:, None] * c[None, :]
+    lu, perm, rows = As, jnp.arange(N), jnp.arange(N)
+    for k in range(N):
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(lu[:, k]), -1.0))
+        swap = jnp.where(rows == k, p, jnp.where(rows == p, k, rows))
+        lu, perm = lu[swap], perm[swap]
+        l = lu[k + 1:, k] / lu[k, k]
+        lu = lu.at[k + 1:, k].set(l).at[k + 1:, k + 1:].add(-l[:, None] * lu[k, k + 1:])
+    pivots = jnp.abs(jnp.diag(lu))
+    deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
+    return LU(lu, perm, As, r, c, deficient)
+
+
+def looped_basic_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """:func:`linalg.dense.basic_solve` (the basic solution, ``A`` real or complex, ``b`` a
+    vector) without LAPACK, in two loops: Householder QR with column pivoting (the
+    remaining column of largest norm below row ``k`` swapped in, the first of equals, as
+    LAPACK's ``xGEQP3``), then back substitution with the unknowns of columns whose
+    ``|R_kk| <= RANK_RTOL |R_00|`` set to zero.
+
+    For the rank-deficient branch of :func:`inline_lu_solve`: a LAPACK call there, though
+    never taken, would cost at every solve (:func:`linalg.dense.rarely`); looped rather
+    than unrolled, its code does not grow with ``N``, and its speed, in a branch that is
+    rarely taken, does not matter."""
+    N = A.shape[0]
+    rows = jnp.arange(N)
+
+    def reflect(k, carry):
+        R, y, perm = carry
+        below = rows >= k
+        norms = jnp.sum(jnp.where(below[:, None], jnp.abs(R) ** 2, 0.0), axis=0)
+        j = jnp.argmax(jnp.where(below, norms, -1.0))
+        swap = jnp.where(rows == k, j, jnp.where(rows == j, k, rows))
+        R, perm = R[:, swap], perm[swap]
+        x = jnp.where(below, R[:, k], 0.0)
+        norm = jnp.sqrt(jnp.sum(jnp.abs(x) ** 2))
+        # H = I - 2 v v^H / (v^H v) maps x to alpha e_k, alpha of the phase opposite to
+        # x_k's (no cancellation in v_k).
+        xk = R[k, k]
+        phase = jnp.where(xk != 0, xk / jnp.where(xk != 0, jnp.abs(xk), 1.0), 1.0)
+        v = x - (rows == k) * (-phase * norm)
+        vv = jnp.sum(jnp.abs(v) ** 2)
+        # A zero column (vv = 0) needs no reflection.
+        scale = jnp.where(vv > 0, 2.0 / jnp.where(vv > 0, vv, 1.0), 0.0)
+        return (R - scale * jnp.outer(v, v.conj() @ R), y - scale * v * (v.conj() @ y),
+                perm)
+
+    R, y, perm = jax.lax.fori_loop(0, N - 1, reflect, (A, b, rows))
+    d = jnp.abs(jnp.diag(R))
+    keep = d > RANK_RTOL * d[0]
+
+    def substitute(k, x):
+        i = N - 1 - k
+        return x.at[i].set(jnp.where(keep[i], (y[i] - R[i] @ x)
+                                     / jnp.where(keep[i], R[i, i], 1.0), 0.0))
+
+    x = jax.lax.fori_loop(0, N, substitute, jnp.zeros_like(y))
+    return jnp.zeros_like(x).at[perm].set(x)
+
+
+def inline_lu_solve(F: LU, b: jax.Array) -> jax.Array:
+    """``A^{-1} b`` for ``F = inline_lu_factor(A)`` and a vector ``b``: the triangular
+    solves unrolled; the basic solution of :func:`linalg.dense.basic_solve` where ``A``
+    is rank deficient (the one rank policy), by :func:`looped_basic_solve`."""
+    N = b.shape[0]
+    rb = b * F.row
+    x = rb[F.piv]
+    for i in range(1, N):
+        x = x.at[i].add(-F.lu[i, :i] @ x[:i])
+    for i in reversed(range(N)):
+        x = x.at[i].set((x[i] - F.lu[i, i + 1:] @ x[i + 1:]) / F.lu[i, i])
+    return rarely(F.deficient, looped_basic_solve, x, F.scaled, rb) * F.col
+
+
 def _factor(J, B, h, tab: RadauTableau):
-    """LU of the real ``gamma/h B + J`` and of the complex ``(alpha - i beta)/h B + J``."""
-    E1 = lu_factor(tab.gamma / h * B + J)
-    E2 = lu_factor(((tab.alpha - 1j * tab.beta) / h) * B + J.astype(jnp.complex128))
+    """LU of the real ``gamma/h B + J`` and of the complex ``(alpha - i beta)/h B + J``
+    (unrolled up to :data:`INLINE_MAX` unknowns, else LAPACK's)."""
+    factor = inline_lu_factor if J.shape[0] <= INLINE_MAX else lu_factor
+    E1 = factor(tab.gamma / h * B + J)
+    E2 = factor(((tab.alpha - 1j * tab.beta) / h) * B + J.astype(jnp.complex128))
     return E1, E2
+
+
+def _solve(F: LU, r: jax.Array) -> jax.Array:
+    """``A^{-1} r`` with a factorisation from :func:`_factor`."""
+    return inline_lu_solve(F, r) if r.shape[0] <= INLINE_MAX else lu_solve(F, r)
 
 
 def _real_linear(f):
@@ -291,10 +395,10 @@ class DenseStages(NamedTuple):
         return _factor(*frozen, h, self.tab)
 
     def solve_real(self, frozen, factors, h, r):
-        return lu_solve(factors[0], r)
+        return _solve(factors[0], r)
 
     def solve_complex(self, frozen, factors, h, r):
-        return lu_solve(factors[1], r)
+        return _solve(factors[1], r)
 
     def floor(self, frozen, t, y, w):
         J, B = frozen
@@ -444,9 +548,11 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     refactor = st.need_jac | ((h != st.h_lu) & lin.scaled)
     factors = jax.lax.cond(refactor, lambda: lin.factor(frozen, h), lambda: st.factors)
     fresh = st.fresh | st.need_jac
-    # Components of index k count with h^(k-1) in the error and Newton norms.
+    # Components of index k count with h^(k-1) in the error and Newton norms, the
+    # multipliers with their own atol (out of both by default: class notes).
     h_index = h ** exponent
-    scal = (p.atol + p.rtol * jnp.abs(y)) / h_index
+    atol = jnp.where(jnp.arange(N) < 2 * n, p.atol, p.multiplier_atol)
+    scal = (atol + p.rtol * jnp.abs(y)) / h_index
     Z0 = jnp.where(st.first, jnp.zeros((3, N)), _extrapolate(st.Z, h / st.h_z, tab.c))
     # Round-off floors, row by row (newton.py's rule): eps times the magnitude of the
     # terms of each residual row; residuals are measured in these units.
@@ -454,7 +560,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
     faccon0 = jnp.maximum(st.faccon, EPS) ** 0.8
 
     def body(s):
-        Z, k, k_ok, dynold, thqold, theta, faccon, cres, held, res_prev, _, hhfac = s
+        Z, k, k_ok, dynold, thqold, theta, theta_ok, faccon, cres, held, res_prev, _, hhfac = s
         Rs = stage_residual(R, t, y, h, Z)
         res = jnp.max(jnp.abs(Rs) / floor)
         at_floor = res <= 1e3
@@ -481,7 +587,12 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         slow = (k > 1) & (k < nit) & (k_ok == 0) & (dyth >= 1.0) & ~at_floor
         hhfac = 0.8 * jnp.clip(dyth, 1e-4, 20.0) ** (-1.0 / (4 + nit - 1 - k))
         Z1 = Z + T @ dW
-        k_ok = jnp.where((k_ok == 0) & (faccon * dyno <= p.fnewt), k, k_ok)
+        passed = (k_ok == 0) & (faccon * dyno <= p.fnewt)
+        # The contraction that decides the Jacobian's reuse is the one measured up to
+        # RADAU5's test: the iterations past it run into round-off, where the ratio of
+        # successive increments says nothing about the iteration matrix.
+        theta_ok = jnp.where(passed, theta, theta_ok)
+        k_ok = jnp.where(passed, k, k_ok)
         tight = faccon * dyno <= NEWTON_TIGHT * p.fnewt
         done = (k_ok > 0) & (tight | at_floor | ~contracting | (k - k_ok >= NEWTON_EXTRA))
         # Then the constraints at the step end to round-off (up to nit more iterations).
@@ -493,14 +604,15 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         spent = jnp.where(k_ok == 0, k >= nit, k - k_ok >= nit)
         status = jnp.where(noise, 1, jnp.where(diverged, 2, jnp.where(slow, 3, jnp.where(
             done & held1, 1, jnp.where(spent, 2, 0))))).astype(jnp.int32)
-        return (jnp.where(noise, Z, Z1), k, k_ok, jnp.maximum(dyno, EPS), thq, theta, faccon,
-                cres1, held1, res, status, hhfac)
+        return (jnp.where(noise, Z, Z1), k, k_ok, jnp.maximum(dyno, EPS), thq, theta,
+                theta_ok, faccon, cres1, held1, res, status, hhfac)
 
     int0, false = jnp.zeros((), jnp.int32), jnp.asarray(False)
-    s0 = (Z0, int0, int0, jnp.asarray(1.0), jnp.asarray(1.0), jnp.asarray(0.0), faccon0,
-          jnp.asarray(jnp.inf), false, jnp.asarray(jnp.inf), int0, jnp.asarray(1.0))
-    Z, k, k_ok, _, _, theta, faccon, _, _, _, status, hhfac = jax.lax.while_loop(
-        lambda s: s[10] == 0, body, s0)
+    s0 = (Z0, int0, int0, jnp.asarray(1.0), jnp.asarray(1.0), jnp.asarray(0.0),
+          jnp.asarray(0.0), faccon0, jnp.asarray(jnp.inf), false, jnp.asarray(jnp.inf), int0,
+          jnp.asarray(1.0))
+    Z, k, k_ok, _, _, _, theta, faccon, _, _, _, status, hhfac = jax.lax.while_loop(
+        lambda s: s[11] == 0, body, s0)
     y1 = y + Z[2]
     converged = (status == 1) & jnp.all(jnp.isfinite(y1))
 
@@ -510,7 +622,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         gamma0 = 1.0 / tab.gamma
         ez = (jnp.asarray(tab.e / gamma0) @ Z) / h
         Bez = jax.jvp(lambda w: R(t, y, w), (zeros,), (ez,))[1]
-        scal_e = (p.atol + p.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))) / h_index
+        scal_e = (atol + p.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))) / h_index
 
         def norm(err):
             return jnp.sqrt(jnp.mean((err / scal_e) ** 2))
@@ -536,16 +648,21 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
                    1.0 / FACTOR_MAX, 1.0 / FACTOR_MIN)
     quot = jnp.where(accept & (st.n_accepted >= 1), jnp.maximum(quot, gus), quot)
     h_new = jnp.minimum(h / quot, p.max_step)
-    new_jac = theta > THETA_KEEP
+    new_jac = theta > p.thet
     ratio = h_new / h
     h_acc_next = jnp.where(st.reject, jnp.minimum(h_new, h), h_new)
     # A step size that would barely change keeps the factorisations (and the step).
     h_acc_next = jnp.where(~new_jac & (ratio >= KEEP_RATIOS[0]) & (ratio <= KEEP_RATIOS[1]),
                            h, h_acc_next)
+    # Newton failing with a Jacobian kept from an earlier step says nothing against the
+    # step size: the attempt is retried at the same step with a fresh Jacobian (as
+    # SUNDIALS' integrators do), and only a fresh Jacobian's failure shrinks the step.
+    stale = ~converged & ~fresh
     h_next = jnp.where(accept, h_acc_next,
-                       jnp.where(status == 2, 0.5 * h,
-                                 jnp.where(status == 3, hhfac * h,
-                                           jnp.where(st.first, 0.1 * h, h_new))))
+                       jnp.where(stale, h,
+                                 jnp.where(status == 2, 0.5 * h,
+                                           jnp.where(status == 3, hhfac * h,
+                                                     jnp.where(st.first, 0.1 * h, h_new)))))
     need_jac = jnp.where(accept, new_jac, jnp.where(converged, False, ~fresh))
     f0 = jax.lax.cond(accept, lambda: -R(t1, y1, zeros), lambda: st.f0)
     underflow = ~accept & (h_next <= UNDERFLOW_ULPS * EPS * jnp.maximum(1.0, jnp.abs(t)))
@@ -650,11 +767,13 @@ class RadauIIA(Integrator):
     multipliers order 3. Not symplectic; L-stable.
 
     **Newton.** Simplified Newton with the iteration matrix ``A^{-1}/h (x) B + I (x) J``
-    frozen at ``(t_n, y_n, y'_n)`` (``J = dR/dy``, ``B = dR/dy'``, autodiff of the
+    frozen at the ``(t_n, y_n, y'_n)`` of the step where it was last evaluated (see
+    "Jacobian reuse"; ``J = dR/dy``, ``B = dR/dy'``, autodiff of the
     residual ``R = B y' - F``, :func:`iteration_blocks`), block-diagonalised by the
     eigenvectors of ``A^{-1}``: each iteration solves one real system with
     ``gamma/h B + J`` and one complex system with ``(alpha - i beta)/h B + J``, each
-    factorised once (LU, equilibrated, :func:`linalg.dense.lu_factor`) and reused while
+    factorised once (LU, equilibrated, :func:`linalg.dense.lu_factor`, unrolled in the
+    loop body for small systems: :data:`INLINE_MAX`) and reused while
     ``h`` and ``J`` are. Starting values come from the collocation polynomial of the last
     step, extrapolated. Convergence: RADAU5's test on the scaled increments,
     ``theta/(1 - theta) ||dZ|| <= fnewt`` with the contraction rate ``theta``, then at
@@ -662,23 +781,46 @@ class RadauIIA(Integrator):
     round-off floor or when the contraction stalls: :data:`NEWTON_TIGHT`), and, since
     the forms hold the constraints as equations, ``max |constraint rows at t_{n+1}| <=
     newton_tol`` or at its round-off floor (as :func:`integrators.newton.newton`
-    defines it): ``g`` (and ``G v + g_t``) hold to round-off at every step end. Divergence
-    (``theta >= 0.99``) halves ``h``, a predicted slow convergence shrinks it, and either
-    re-evaluates a Jacobian that was not fresh.
+    defines it): ``g`` (and ``G v + g_t``) hold to round-off at every step end. A Newton
+    failure with a Jacobian kept from an earlier step re-evaluates it and retries the same
+    step; with a fresh one, divergence (``theta >= 0.99``) halves ``h`` and a predicted
+    slow convergence shrinks it (RADAU5 shrinks the step in both cases).
 
     **Error and step size.** Hairer's embedded estimate ``err = (gamma/h B + J)^{-1}
     (F(t_n, y_n) + B sum_j d_j Z_j / h)``, ``d = (-(13 + 7 sqrt 6)/3, (-13 + 7 sqrt 6)/3,
     -1/3)`` (order 3; the solve damps stiff components), filtered once more through
-    ``F(y_n + err)`` on a first or retried step with ``||err|| >= 1``. Its RMS norm
-    weighs component ``i`` by ``(atol + rtol max(|y_n|, |y_{n+1}|)) / h^(k_i - 1)``
-    with ``k_i`` its index (RADAU5's ``nind`` scaling: the local errors of algebraic
-    components are ``O(h^(1-k))`` larger by nature). New step ``h fac err^(-1/4)``,
+    ``F(y_n + err)`` on a first or retried step with ``||err|| >= 1``. Its RMS norm (over
+    all ``N`` components) weighs component ``i`` by ``(atol_i + rtol max(|y_n|,
+    |y_{n+1}|)) / h^(k_i - 1)`` with ``k_i`` its index (RADAU5's ``nind`` scaling: the
+    local errors of components of higher index are ``O(h^(1-k))`` larger by nature).
+
+    **The multipliers' error.** One rule for both forms: ``atol_i = atol`` for ``q`` and
+    ``v``, ``atol_i = multiplier_atol`` for the multipliers (``lambda``, and ``mu`` on
+    the stabilised form), the same weights in the error test and in Newton's test. The
+    default, :data:`integrators.ida.EXCLUDED` (``1e30``), leaves the multipliers out of
+    both, as ``ida-ggl`` does (SUNDIALS' GGL example suppresses the algebraic variables):
+    they are functions of ``(q, v)`` and the step size is chosen for ``(q, v)``. Two
+    failures of keeping them in (``multiplier_atol = atol`` is RADAU5's rule, still
+    available): the stabilised form's ``mu`` is zero in the exact solution, so its weight
+    is ``atol / h`` and its estimate, not ``rtol``, sets the step size (the same step count
+    at every ``rtol``); and where a multiplier passes through zero its weight is
+    ``atol / h^2`` while the rounding of the constraint rows reaches it through the
+    iteration matrix as ``O(eps / h^2)`` too, so Newton's increments stall above the test
+    at every step size, the step collapses by orders of magnitude, and at those steps the
+    velocities' weight ``(atol + rtol |v|) / h`` lets ``G v + g_t`` jump by orders of
+    magnitude (the index-3 form does not hold it). New step ``h fac err^(-1/4)``,
     ``fac = safety (1 + 2 nit)/(newt + 2 nit)`` capped at ``safety`` (``newt`` the
     iterations Newton's test took), ratio in [0.2, 8]; after an accepted step the smaller
     of that and Gustafsson's predictive ``h_n/h_{n-1} (err_{n-1}/err_n^2)^(1/4)`` step;
-    no increase right after a rejection; the Jacobian is kept when Newton contracted by
-    ``theta <= 1e-3``, and the step with its factorisations when the ratio is in
-    [1, 1.2].
+    no increase right after a rejection.
+
+    **Jacobian reuse** (RADAU5's): after an accepted step the Jacobian is kept when
+    Newton's contraction ``theta``, as measured when its test passed (the iterations past
+    it approach round-off, where the ratio of increments says nothing about the matrix), is
+    at most ``thet``; the step and its factorisations are kept when the new step's ratio to
+    the last is in [1, 1.2] and the Jacobian is; otherwise the kept Jacobian is
+    refactorised for the new step. A rejection by the error test keeps the Jacobian; a
+    Newton failure re-evaluates it unless it was fresh (see "Newton").
 
     **Tolerances.** The error test takes ``rtol`` and ``atol`` as given, as the suite's
     other adaptive methods do. RADAU5 itself first maps them to ``rtol' = 0.1
@@ -708,7 +850,16 @@ class RadauIIA(Integrator):
     rtol : float
         Relative tolerance.
     atol : float
-        Absolute tolerance; NaN (the default) sets it equal to ``rtol`` at construction.
+        Absolute tolerance on ``q`` and ``v``; NaN (the default) sets it equal to ``rtol``
+        at construction.
+    multiplier_atol : float
+        Absolute tolerance on the multipliers in the error and Newton's tests; the default
+        :data:`integrators.ida.EXCLUDED` keeps them out of both, ``atol`` gives RADAU5's
+        rule (see "The multipliers' error").
+    thet : float
+        Newton's contraction up to which the Jacobian is kept for the next step (RADAU5's
+        ``WORK(3)``; default :data:`THETA_KEEP`); a negative value re-evaluates it after
+        every accepted step.
     newton_tol : float
         Bound on the constraint rows at the step end; the default 1e-16 means "to
         round-off".
@@ -735,6 +886,8 @@ class RadauIIA(Integrator):
     formulation: str = "index3"
     rtol: float = 1e-6
     atol: float = math.nan
+    multiplier_atol: float = EXCLUDED
+    thet: float = THETA_KEEP
     newton_tol: float = 1e-16
     newton_max_iter: int = 7
     safety: float = 0.9
@@ -751,6 +904,10 @@ class RadauIIA(Integrator):
         super().check()
         name = type(self).__name__
         self.check_choice("formulation", FORMULATIONS)
+        if not math.isfinite(self.thet):
+            raise ValueError(f"{name}: thet = {self.thet} must be finite")
+        if not self.multiplier_atol > 0:
+            raise ValueError(f"{name}: multiplier_atol = {self.multiplier_atol} must be > 0")
         if not 0 < self.safety <= 1:
             raise ValueError(f"{name}: safety = {self.safety} must lie in (0, 1]")
         if not (self.first_step > 0 and self.max_step > 0 and self.max_steps >= 1):
@@ -772,7 +929,8 @@ class RadauIIA(Integrator):
         y0, yp0 = consistent_values(mech, form.multiplier_blocks, t0, case.q0, case.v0,
                                     schur=schur)
         f64 = partial(jnp.asarray, dtype=jnp.float64)
-        params = Params(f64(t_end), f64(self.rtol), f64(self.atol), f64(self.fnewt),
+        params = Params(f64(t_end), f64(self.rtol), f64(self.atol),
+                        f64(self.multiplier_atol), f64(self.thet), f64(self.fnewt),
                         f64(self.newton_tol),
                         f64(self.safety), f64(self.first_step), f64(self.max_step),
                         jnp.asarray(self.max_steps, jnp.int64))
@@ -784,9 +942,9 @@ class RadauIIA(Integrator):
             # that trace's constants, which the compiled chunk would then expect as inputs.
             mech.gram(schur.name)
         # Redundant constraints make the stage systems singular everywhere. Their basic
-        # solutions (linalg.dense) keep Newton going, but at a crawl: on bricard (rank 23
-        # of 24) 102 steps and 145 rejections took 14 s for 0.1 s of motion. (The
-        # structured solvers apply the one rank policy of linalg.dense themselves.)
+        # solutions (linalg.dense) keep Newton going, but at a crawl, with more rejected
+        # steps than accepted ones (bricard, rank 23 of 24). (The structured solvers apply
+        # the one rank policy of linalg.dense themselves.)
         rank = mech.m if schur.name != "dense" else int(np.linalg.matrix_rank(
             np.asarray(mech.G(f64(case.q0), f64(t0)))))
         if rank < mech.m:

@@ -57,8 +57,8 @@ class Rattle(FixedStep):
     nearly singular, and the ``lambda`` that solves the step is large along the
     constraints that are dependent at ``q_0`` (their forces nearly cancel); carried into
     the next step, whose ``G`` no longer cancels them, it would start Newton far from the
-    solution (measured on four-bar:N=1024: Newton then found another root, off the
-    parallelogram branch). The dense path, whose exact Newton converges from there, keeps
+    solution (on four-bar:N=1024 Newton then finds another root, off the parallelogram
+    branch). The dense path, whose exact Newton converges from there, keeps
     ``lambda``.
 
     Parameters
@@ -93,9 +93,8 @@ class Rattle(FixedStep):
         """One constraint for a separable Hamiltonian, none otherwise
         (:meth:`integrators.fixed.FixedStep.dense_max`): there the dense Newton's unknown is
         the one multiplier, its Jacobian a number and its solve a division, with no LAPACK
-        call, and it beat the structured path (pendulum and sps-receiver: 1.8 and 1.2
-        times as fast, ``python -m benchmarks.perf.crossover``, load 0.2 to 1); from two
-        constraints on the structured path was 4.8 to 12 times as fast."""
+        call, and it beats the structured path; from two constraints on the structured
+        path is the faster (``python -m benchmarks.perf.crossover``)."""
         return 1 if mech.separable else 0
 
     def forces(self, mech: Mechanics, solve=None):
@@ -154,9 +153,8 @@ class Rattle(FixedStep):
                 # The position equation is taken times M(q0)^-1 M(q1):
                 # M0^-1 M1 (q1 - q0 - h/2 v_half) - h/2 v_half, the same roots and rounding
                 # (M0^-1 M1 is near the identity) with a product with M(q1) in place of a
-                # solve, which factorises a configuration-dependent M(q1) afresh at every
-                # iterate: 11.5 against 20.2 ms per iteration on rigid-chain:N=16384, the
-                # same residuals at every iteration (scratch measurement, one core).
+                # solve, which would factorise a configuration-dependent M(q1) afresh at
+                # every iterate.
                 p_half, q1, lam = z
                 F_half, v_half = F0_at(t, q0, p_half)
                 return (p_half - p0 - 0.5 * h * (F_half - mech.GT(q0, t, lam)),
@@ -227,10 +225,7 @@ class Rattle(FixedStep):
         guess = sol.z if schur.name == "dense" else mu
         # v1 = H_p(q1, p1) with M(q1) as factorised above, and that factor, are carried to
         # the next step: computed afresh where the loop observes v1 and where the next step
-        # starts, a configuration-dependent mass was factorised twice more per step
-        # (rigid-chain:N=16384, one core: 195 and 173 ms per step of the loop with the
-        # first, 140 and 161 without it, alternating; with the second, 1.05 times as long
-        # at N = 1024 and 16384, the same steps, side by side in one process).
+        # starts, a configuration-dependent mass would be factorised twice more per step.
         return ((q1, p1, solve1(p1), F1, S1, guess, K1), newton_failure(sol.converged, ok),
                 sol.residual, counts)
 

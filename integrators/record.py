@@ -48,10 +48,9 @@ def batch_length(n: int) -> int:
     """Points per batch for ``n`` coordinates: about :data:`BATCH_BYTES`, in 1..4096.
 
     No floor above one: the batch lives in the compiled chunk's output, on the host and in
-    the batched measurement (whose temporaries are several states per point), so 64
-    points of rigid-chain:N=16384 (n = 114688) took 117 MB per buffer and 688 MB for the
-    measurement. A system that large takes milliseconds per step, against tens of
-    microseconds for handing a chunk over."""
+    the batched measurement (whose temporaries are several states per point), so a large
+    system's batch is kept to a few states: its steps cost far more than handing a chunk
+    over."""
     return int(min(4096, max(1, BATCH_BYTES // (8 * (2 * n + 1)))))
 
 

@@ -88,9 +88,7 @@ def combine(A: np.ndarray, X):
     Why not ``A @ X``: under ``jax.vmap`` the product becomes one matrix product over all
     lanes, which XLA:CPU hands to its matrix library, and that call keeps the time loop
     from compiling into one native kernel (:mod:`integrators.loop`); sums of scaled
-    arrays fuse into it. 16 lanes of lobatto3ab3 on the pendulum ran 4.4e5 lane-steps/s
-    with the products and 1.1e6 with the sums (one trajectory: 1.05e6 steps/s either way;
-    ``python -m benchmarks.perf.ensemble``, one core).
+    arrays fuse into it (``python -m benchmarks.perf.ensemble`` measures ensembles).
     """
     A = np.asarray(A)
     if A.ndim == 2:

@@ -28,10 +28,9 @@ BAND_MAX = 16
 
 def unroll(w: int) -> int:
     """Rows per scan iteration: a narrow band's row is a few operations, and the scan's own
-    cost per iteration is most of it. Four rows came out best or within the noise of best
-    for bandwidths 1, 2 and 6 (m = 65536, one core: the factor took 18 ns per row at
-    ``w = 1`` against 25 to 33 with 16 rows, 36 against 47 at ``w = 6`` with 2; the solve
-    14 against 16, and 29 against 30); wider bands, whose rows are long already, take
+    cost per iteration is most of it. Four rows are best, or within the noise of best, for
+    the factor and the solve at bandwidths 1, 2 and 6; wider bands, whose rows are long
+    already, take
     fewer (their code grows like the bandwidth squared times the rows unrolled). The same
     rule serves :mod:`linalg.kkt`'s band ``L D L^T``; bandwidths 7 and 8 (``four-bar``'s
     augmented system has 7) take four rows like 6 without a measurement of their own."""
@@ -91,10 +90,7 @@ def band_solve(Lb: jax.Array, r: jax.Array) -> jax.Array:
 
     Each row multiplies by its pivot's reciprocal (0 for a dropped row), computed for all
     rows before the scans: a substitution is a chain, each row waiting for the one before,
-    and a division in it, whose latency is several multiplications', set its pace. With
-    one right-hand side a solve took 22 to 24 ns per row against 33 at ``w = 6`` (m =
-    4096) and 8.4 to 8.7 against 15.7 to 16.0 at ``w = 1`` (m = 16384); with three, 61
-    against 64 (one core, load about 0.8).
+    and a division in it, whose latency is several multiplications', would set its pace.
     """
     m, w = Lb.shape[0], Lb.shape[1] - 1
     lower = Lb[:, :0:-1]  # L[i, i-w .. i-1]
@@ -125,13 +121,9 @@ def band_norm(Sb: jax.Array) -> jax.Array:
 
     Row ``i`` holds ``S[i, i - k] = Sb[i, k]`` left of the diagonal and ``S[i, i + k] =
     Sb[i + k, k]`` right of it. Summed over the transposed band, whose columns ``k`` are
-    contiguous rows there. Taken from the band itself, each strided column was a pass of
-    its own before the reduction: 8.6 against 2.4 ms at ``m = 65536, w = 6``, 0.50 against
-    0.08 at ``m = 4096`` (one core, in a loop), and RATTLE's step, which uses the norm in
-    its stall test, took 0.85 to 0.87 times as long on chain:N=16384 (2.55 against 2.95
-    ms, 3.05 against 3.51) and 0.95 to 0.98 on rigid-chain:N=16384, alike at N = 1024
-    (side by side in one process, load 0.8 to 1.1; the same steps, the norm to its last
-    bit).
+    contiguous rows there: taken from the band itself, each strided column is a pass of
+    its own before the reduction, a cost RATTLE's step pays through its stall test. Both
+    orders give the same norm to its last bit.
     """
     A = jnp.abs(Sb).T
     left = sum(A[k] for k in range(len(A)))   # the diagonal and left of it

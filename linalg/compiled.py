@@ -18,8 +18,8 @@ then given back to the system (:func:`give_back_heap`).
 Programs kept on disk
 ---------------------
 JAX's persistent cache (:mod:`benchmarks.compilation`) spares XLA's compilation but not
-tracing and lowering, which it needs for its key: a warm set-up of a small problem is
-still 0.2 to 0.7 s, most of it Python. Inside :func:`keeping` (a folder and an identity),
+tracing and lowering, which it needs for its key: most of a warm set-up of a small
+problem is then Python. Inside :func:`keeping` (a folder and an identity),
 :func:`compile_lifted` keeps what it compiles as a file: the serialized executable, its
 argument and result structure and the lifted constants; a later process in the same
 scope loads it without tracing. The identity must determine every program compiled in

@@ -29,6 +29,10 @@ import jax.numpy as jnp
 #: Pivot ratio below which a factorisation is taken as numerically rank deficient.
 RANK_RTOL = 1e-12
 
+#: Largest system factorised by unrolled scalar code (:func:`small_cho_factor`,
+#: :func:`small_basic_solve`) instead of LAPACK.
+SMALL_DENSE = 4
+
 
 def power_of_two_scale(x: jax.Array) -> jax.Array:
     """``2^-round(log2 x)`` for ``x > 0`` (1 where ``x`` is 0): scaling by it is exact.
@@ -54,6 +58,8 @@ def basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Arra
     (not the minimum-norm one); ``b`` may be a vector or a matrix of columns, ``A`` real
     or complex.
     """
+    if A.shape[0] == A.shape[1] <= SMALL_DENSE and not jnp.iscomplexobj(A):
+        return small_basic_solve(A, b, rtol)
     Q, R, perm = jax.scipy.linalg.qr(A, pivoting=True)
     d = jnp.abs(jnp.diag(R))
     keep = d > rtol * d[0]
@@ -61,6 +67,42 @@ def basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Arra
     R = jnp.where(keep[:, None], R, jnp.eye(A.shape[0]))
     y = jax.scipy.linalg.solve_triangular(R, jnp.where(mask, Q.conj().T @ b, 0.0))
     return jnp.zeros_like(y).at[perm].set(y)
+
+
+def small_basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Array:
+    """:func:`basic_solve` for a small real ``A`` (``m <= SMALL_DENSE``), written out:
+    Householder QR with column pivoting (at step ``k`` the remaining column of largest
+    norm below row ``k`` is swapped in, as LAPACK's ``dgeqp3`` chooses it, the first of
+    equals), then the same basic solution.
+
+    No LAPACK call: one inside a loop's body costs at every entry of the loop even where
+    the body never runs (:func:`rarely`), which for a few constraints is most of a step.
+    """
+    m = A.shape[0]
+    cols = jnp.arange(m)
+    R, y, perm = A, b, cols
+    for k in range(m):
+        j = k + jnp.argmax(jnp.sum(R[k:, k:] ** 2, axis=0))
+        swap = jnp.where(cols == k, j, jnp.where(cols == j, k, cols))
+        R, perm = R[:, swap], perm[swap]
+        if k == m - 1:
+            break
+        x = R[k:, k]
+        norm = jnp.sqrt(jnp.sum(x * x))
+        alpha = jnp.where(x[0] > 0, -norm, norm)
+        v = x.at[0].add(-alpha)
+        vv = jnp.sum(v * v)
+        # A zero column (vv = 0) needs no reflection.
+        scale = jnp.where(vv > 0, 2.0 / jnp.where(vv > 0, vv, 1.0), 0.0)
+        R = R.at[k:, :].add(-scale * jnp.outer(v, v @ R[k:, :]))
+        y = y.at[k:].add(-scale * (jnp.outer(v, v @ y[k:]) if y.ndim == 2 else v * (v @ y[k:])))
+    d = jnp.abs(jnp.diag(R))
+    keep = d > rtol * d[0]
+    x = [None] * m
+    for i in reversed(range(m)):
+        rhs = y[i] - sum(R[i, k] * x[k] for k in range(i + 1, m))
+        x[i] = jnp.where(keep[i], rhs / jnp.where(keep[i], R[i, i], 1.0), 0.0)
+    return jnp.zeros_like(b).at[perm].set(jnp.stack(x))
 
 
 class LU(NamedTuple):
@@ -115,17 +157,15 @@ def rarely(pred: jax.Array, fn: Callable[..., Any], otherwise: Any, *operands: A
     evaluated only when taken, also under ``jax.vmap``.
 
     ``lax.cond`` on a batched predicate becomes a select of both branches, so an ensemble
-    would pay for the QR of :func:`basic_solve` at every solve (measured: 4 lanes of
-    lobatto3ab3 on chain:N=8 ran 100 steps in 44 s). A while loop of at most one iteration
-    runs its body under ``vmap`` only while some lane's predicate holds, and keeps the
-    other lanes' values.
+    would pay for the QR of :func:`basic_solve` at every solve. A while loop of at most one
+    iteration runs its body under ``vmap`` only while some lane's predicate holds, and
+    keeps the other lanes' values.
 
     The branch's inputs go in as ``operands`` and reach ``fn`` through an optimisation
     barrier with the loop's predicate, which makes them values of the loop. A body whose
-    inputs are all fixed before the loop is loop-invariant, and XLA hoisted it out of the
-    batched loop, evaluating it every time: 256 lanes of 17 x 17 systems that are never
-    deficient paid 8.5 to 12 us per lane for the QR, 0.45 us with the barrier; lobatto3ab3
-    on the pendulum ran 1.65e4 lane-steps/s at 64 to 256 lanes before, 5.7e4 to 6.1e4 after.
+    inputs are all fixed before the loop is loop-invariant, and XLA hoists it out of the
+    batched loop, evaluating it every time, so that lanes whose systems are never
+    deficient would pay for the QR.
     """
 
     def body(state):
@@ -141,23 +181,59 @@ def unit_diagonal(d: jax.Array) -> jax.Array:
     return jnp.where(d > 0, 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0)), 1.0)
 
 
+def small_cho_factor(S: jax.Array) -> jax.Array:
+    """The lower Cholesky factor of a small ``S`` (``m <= SMALL_DENSE``), written out
+    entry by entry: ``L_jj = sqrt(S_jj - sum_k L_jk^2)``,
+    ``L_ij = (S_ij - sum_k L_ik L_jk) / L_jj`` (``k < j``). A LAPACK call is opaque to
+    XLA's fusion and has a fixed cost that the ``m^3 / 6`` operations of a few constraints
+    do not approach; unrolled, the factor fuses with the code around it. A breakdown
+    leaves NaN on the diagonal, which :func:`spd_solve`'s rank test takes as a small pivot,
+    as it does LAPACK's."""
+    m = S.shape[0]
+    L = [[jnp.zeros((), S.dtype)] * m for _ in range(m)]
+    for j in range(m):
+        L[j][j] = jnp.sqrt(S[j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        for i in range(j + 1, m):
+            L[i][j] = (S[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    return jnp.stack([jnp.stack(row) for row in L])
+
+
+def small_cho_solve(L: jax.Array, b: jax.Array) -> jax.Array:
+    """``(L L^T)^{-1} b`` by forward and back substitution, unrolled (see
+    :func:`small_cho_factor`); ``b`` a vector or a matrix of columns."""
+    m = L.shape[0]
+    z = []
+    for i in range(m):
+        z.append((b[i] - sum(L[i, k] * z[k] for k in range(i))) / L[i, i])
+    x = [None] * m
+    for i in reversed(range(m)):
+        x[i] = (z[i] - sum(L[k, i] * x[k] for k in range(i + 1, m))) / L[i, i]
+    return jnp.stack(x)
+
+
 def spd_solve(S: jax.Array, rhs: jax.Array) -> jax.Array:
     """``S^{-1} rhs`` for a symmetric positive semidefinite ``S``, under the one policy.
 
     ``S`` is scaled to unit diagonal (``D S D``) and factorised by Cholesky; if its
     smallest squared pivot is below :data:`RANK_RTOL` times the largest, or the factor
     breaks down, the basic solution of the scaled system is used (:func:`basic_solve`).
+    A system of up to :data:`SMALL_DENSE` unknowns is factorised by unrolled code
+    (:func:`small_cho_factor`), a larger one by LAPACK.
     """
     D = unit_diagonal(jnp.diag(S))
     Ss = S * D[:, None] * D[None, :]
     Dr = D[:, None] if rhs.ndim == 2 else D
     if S.shape[0] == 1:
         return rhs / S[0, 0]
-    factor = jax.scipy.linalg.cho_factor(Ss, lower=True)
-    pivots = jnp.diag(factor[0]) ** 2
+    if S.shape[0] <= SMALL_DENSE:
+        L = small_cho_factor(Ss)
+        solution = small_cho_solve(L, Dr * rhs)
+    else:
+        L = jax.scipy.linalg.cho_factor(Ss, lower=True)[0]
+        solution = jax.scipy.linalg.cho_solve((L, True), Dr * rhs)
+    pivots = jnp.diag(L) ** 2
     deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
-    y = rarely(deficient, basic_solve, jax.scipy.linalg.cho_solve(factor, Dr * rhs),
-               Ss, Dr * rhs)
+    y = rarely(deficient, basic_solve, solution, Ss, Dr * rhs)
     return Dr * y
 
 

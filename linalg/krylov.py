@@ -4,8 +4,8 @@
 so that the solution can be differentiated implicitly. That wrapper traces the operator
 and the preconditioner several times over and transposes the operator while the program
 is built, a cost every compiled loop with a structured Newton paid although nothing here
-differentiates through a solve: in a profile of lobatto3ab3 on andrews (given by its
-kinetic energy, the block path), 13 of the 24 s of tracing went to it. The loop below is
+differentiates through a solve (on andrews given by its kinetic energy, the block path,
+it is about half of lobatto3ab3's tracing). The loop below is
 the same iteration without the wrapper, and it starts from ``x = 0`` without evaluating
 ``A`` there.
 """

@@ -28,10 +28,8 @@ BATCH_ENTRIES = 1 << 21
 #: Most entries (colours times ``max(m, n)``) of the passes of ``G``'s compressed autodiff
 #: (:meth:`problems.mechanics.Mechanics.G_values`) taken at once; with more, they are
 #: taken one by one. At once, each intermediate of ``g``'s derivative is held for every
-#: colour, and past the 2 MiB second-level cache of this machine's cores that costs more
-#: than the separate passes save. Reverse passes on rigid-chain:N (7 colours), at once
-#: against one by one, alternating in one process (load 1): 0.83 against 0.94 ms at
-#: N = 4096 (200,704 entries), 3.2 against 2.0 ms at 8192 and 6.7 against 5.1 ms at 16384.
+#: colour, and past a typical 2 MiB second-level cache that costs more than the separate
+#: passes save (on rigid-chain, 7 colours, the crossover lies between N = 4096 and 8192).
 CACHED_ENTRIES = 1 << 18
 
 #: A row of ``G`` with more entries than this (and than four times the median row) joins
@@ -56,10 +54,8 @@ def row_sum(a: jax.Array) -> jax.Array:
     additions of its columns.
 
     XLA:CPU (jaxlib 0.10) hands a reduction to the YNNPACK library, which on a short axis
-    is far slower than the additions that XLA fuses with the products they sum: the sums
-    of the band of ``S`` on rigid-chain:N=16384 took 21 of baumgarte-rk4's 172 ms per step
-    (profiled, one core). Summed here, the step took 161 against 188 ms (6.45 against 6.93
-    at N=1024; side by side in one process).
+    is far slower than the additions that XLA fuses with the products they sum (the sums
+    of the band of ``S`` are a large part of baumgarte-rk4's step on rigid-chain).
     """
     return sum((a[:, j] for j in range(1, a.shape[1])), a[:, 0])
 
@@ -70,8 +66,7 @@ def gather(a: jax.Array, index: jax.Array) -> jax.Array:
     XLA:CPU compiles a loop into one native kernel only if its gathers take a flat index
     (measured: a ``(k, 2)`` index array keeps the loop out of the kernel). Every index is
     in bounds by construction (the patterns' own), so ``mode="clip"`` leaves XLA's gather
-    as it is, without the bounds test and select per entry that the default mode adds:
-    baumgarte-rk4's step on rigid-chain:N=16384 took 5 % less (2 % at N=1024).
+    as it is, without the bounds test and select per entry that the default mode adds.
     """
     return jnp.take(a, index.ravel(), axis=0, mode="clip").reshape(index.shape + a.shape[1:])
 
@@ -197,8 +192,7 @@ class SparseJacobian:
 
         All at once where they are few, one by one where they are not: all at once hold
         every intermediate of ``f`` that many times (26 directions on rigid-chain:N=16384:
-        about 1 GB of temporaries), and batches of a few cost more than either (that
-        Jacobian: 586 ms in batches of 5, 525 ms one by one, 526 ms all at once).
+        about 1 GB of temporaries), and batches of a few cost more than either.
         """
         if len(seeds) * max(self.shape) > BATCH_ENTRIES:
             return jax.lax.map(one, seeds)
@@ -264,9 +258,9 @@ class Pattern:
         padded (entries and columns); the border rows of ``G`` dense.
 
         Slots are grouped by their number of terms rather than all padded to the largest:
-        the index arrays then hold the pairs themselves. Padded, those of rigid-chain:N=16384
-        took 37 MB (57 % of it padding) and its assembly 0.81 us per body, against 0.32 us
-        at N = 1024, where they fit in the cache.
+        the index arrays then hold the pairs themselves. Padded, more than half of them
+        would be padding on rigid-chain, and at large N they would no longer fit in the
+        cache.
         """
         m, n, w = self.m, self.n, self.bandwidth
         mc = len(self.core)

@@ -18,7 +18,7 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
     ``G`` by forward-mode autodiff, ``S`` formed and factorised by Cholesky (a division
     for one constraint): the exact path for small systems, whose callers may run Newton
     with the exact Jacobian on it, and the only one for a configuration-dependent mass
-    given as a matrix function.
+    that is not block diagonal (:class:`linalg.blocks.Blocks`).
 ``banded`` (:mod:`linalg.banded`)
     ``G``'s values by compressed autodiff (a function of ``(q, t)`` the caller supplies),
     ``S`` assembled by gathers in a bandwidth-reducing order (reverse Cuthill-McKee) and
@@ -42,7 +42,8 @@ solvers share one interface (:class:`linalg.dense.Schur`: ``factor(q, t)`` then
 :func:`choose` picks by structure. A constant mass that is not diagonal: ``kkt`` above
 :data:`DENSE_KKT_MAX` constraints when the augmented system's band is at most
 :data:`linalg.kkt.KKT_BAND_MAX` wide, else ``dense``. Otherwise ``dense`` for at most
-``dense_max`` constraints or a mass that is not a constant diagonal; else ``banded``
+``dense_max`` constraints or a mass that is neither diagonal nor block diagonal (however
+it was given: a matrix, a function ``M(q)`` or a kinetic energy); else ``banded``
 when the bandwidth of the core after reordering is at most
 :data:`linalg.banded.BAND_MAX`, else ``superlu``. ``dense_max`` is the caller's crossover:
 a method that runs Newton on its whole stage system passes its own
@@ -62,6 +63,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from linalg.banded import BAND_MAX, Banded
+from linalg.blocks import BLOCK_MAX
 from linalg.dense import Schur
 from linalg.kkt import KKT, KKT_BAND_MAX
 from linalg.pattern import Pattern
@@ -76,12 +78,11 @@ from linalg.sparse import SuperLU
 DENSE_MAX = 8
 
 #: Largest number of constraints solved densely by default where the mass is constant but
-#: not diagonal. Measured with ``python -m benchmarks.perf.four_bar --crossover`` (rattle,
-#: 1000 steps of four-bar:N, load 1 on 2 cores): the two paths leave the same ``|g|``
-#: (7.1e-15 at N = 16, 2.8e-14 at N = 64) and ``kkt`` is faster from N = 16 on (0.046
-#: against 0.090 ms per step; 0.13 against 1.36 at N = 64; at N = 2 0.013 against 0.011).
-#: Dense is kept while its step is well under a millisecond (four-bar up to N = 63,
-#: bricard): there Newton has the exact Jacobian at every iteration, with no fallback.
+#: not diagonal. The two paths leave the same ``|g|`` to round-off, and ``kkt`` is the
+#: faster on four-bar from about N = 16 on (``python -m benchmarks.perf.four_bar
+#: --crossover`` measures it); dense is kept while its step is cheap in absolute terms
+#: (four-bar up to N = 63, bricard): there Newton has the exact Jacobian at every
+#: iteration, with no fallback.
 DENSE_KKT_MAX = 128
 
 #: Names a run may ask for.
@@ -108,7 +109,9 @@ def choose(kind: str, shape: tuple[int, int],
     solve_mass : callable
         ``solve_mass(q, b) -> M(q)^{-1} b`` (the dense path).
     mass_diagonal : ndarray, shape (n,), optional
-        The constant diagonal of ``M`` where it is one; the structured solvers need it.
+        The constant diagonal of ``M`` where it is one; the structured solvers need it. A
+        block-diagonal mass, constant or not, comes as a unit diagonal with ``G``
+        whitened by the blocks' factors (:meth:`problems.mechanics.Mechanics.schur`).
     sparsity : callable, optional
         ``sparsity() -> (rows, cols)``: ``G``'s structural nonzeros, called only where a
         structured solver may be chosen (tracing the pattern costs set-up time).
@@ -124,8 +127,9 @@ def choose(kind: str, shape: tuple[int, int],
     Raises
     ------
     ValueError
-        For an unknown ``kind``; ``banded`` or ``superlu`` on a system whose mass is not a
-        constant diagonal (they assemble ``S`` with ``M^{-1}`` diagonal); ``kkt`` on one
+        For an unknown ``kind``; ``banded`` or ``superlu`` on a system whose mass is neither
+        diagonal nor block diagonal (they assemble ``S`` with ``M^{-1}`` diagonal, after
+        whitening by the blocks); ``kkt`` on one
         whose mass is not constant, or whose augmented system is too wide a band.
     """
     if kind not in KINDS:
@@ -144,8 +148,8 @@ def _build(kind, shape, G, solve_mass, mass_diagonal, sparsity, G_values, mass_m
     if kind == "kkt" or (kind == "auto" and mass_matrix is not None
                          and shape[0] > DENSE_KKT_MAX):
         if mass_matrix is None and not diagonal:
-            raise ValueError("linear_solver = 'kkt' needs a constant mass; this system's "
-                             "mass is not one (use dense)")
+            raise ValueError("linear_solver = 'kkt' needs a constant or block-diagonal mass; "
+                             "this system's mass is neither (use dense)")
         M = mass_matrix if mass_matrix is not None else sp.diags(mass_diagonal)
         solver = KKT(M, *sparsity(), shape, G_values)
         if solver.bandwidth <= KKT_BAND_MAX:
@@ -157,8 +161,9 @@ def _build(kind, shape, G, solve_mass, mass_diagonal, sparsity, G_values, mass_m
     if kind == "dense" or (kind == "auto" and (shape[0] <= dense_max or not diagonal)):
         return Schur(G, solve_mass)
     if not diagonal:
-        raise ValueError(f"linear_solver = {kind!r} needs a constant diagonal mass; "
-                         "this system's mass is not one (use dense"
+        raise ValueError(f"linear_solver = {kind!r} needs a diagonal or block-diagonal mass "
+                         f"(blocks of at most {BLOCK_MAX} coordinates); this system's mass is "
+                         "neither (use dense"
                          + (" or kkt)" if mass_matrix is not None else ")"))
     pattern = Pattern(*sparsity(), shape)
     if kind == "banded" or (kind == "auto" and pattern.bandwidth <= BAND_MAX):

@@ -8,16 +8,9 @@ one step with the same ``G`` factorise once.
 ``S``'s pattern is fixed by ``G``'s, so it is found once: each pair of ``G``'s entries in one
 column ``j`` adds ``G_aj G_bj / M_jj`` to ``S_ab``, and a factorisation sums those products
 into ``S``'s compressed columns (``numpy.bincount``) instead of multiplying sparse
-matrices, whose overhead was most of a small system's factorisation: the assembly (with
-the scaling and the norm) took 0.35 against 1.74 ms on sps-lattice:N=16,K=8 (597
-constraints; SuperLU's factorisation itself 2.1 ms), 0.11 against 1.57 on sps-ring:N=40
-and 0.09 against 1.42 on chain:N=64 (alternating in one process, load 1.1; the same ``S``
-to round-off). With the cheaper test of the kept factor (:meth:`SuperLU._factorise`),
-RATTLE's 4000 steps of the perturbed lattice (``tests/test_problem_sps_lattice.py``) took
-33.3 against 37.4 s (one run each, load 1 to 1.4). Much of the rest of a step there is the
-callbacks' own cost, about 0.45 ms per call beyond the Python they run, less with one
-operand per call (:meth:`SuperLU.factor`): its first 800 steps then took 6.04 and 5.78
-against 6.56 and 7.57 s (alternating processes, load 1.3 to 1.7).
+matrices, whose overhead is most of a small system's factorisation (the same ``S`` to
+round-off). Much of the rest of a step is the callbacks' own cost beyond the Python they
+run, which is less with one operand per call (:meth:`SuperLU.factor`).
 """
 
 from __future__ import annotations
@@ -88,8 +81,8 @@ class SuperLU(Schur):
         """A solver for the unit-diagonal ``S`` of ``G``'s values (the last one is kept):
         SuperLU's factor, or for a singular ``S`` of at most :data:`FALLBACK_MAX` rows the
         dense ``S`` (solved by least squares, rank by :data:`RANK_RTOL`), or ``None``."""
-        # The values themselves are the key: comparing their bytes took 3 us where hashing
-        # them took 67 (3712 entries), and every Newton iteration's solve asks.
+        # The values themselves are the key: comparing their bytes is far cheaper than
+        # hashing them, and every Newton iteration's solve asks.
         key = values.tobytes()
         if self._last is not None and self._last[0] == key:
             return self._last[1]
@@ -121,9 +114,8 @@ class SuperLU(Schur):
             _, _, norm, ok = self._factorise(np.asarray(values))
             return np.array([norm, ok], dtype=np.float64)
 
-        # One operand and one result per callback: each costs on its own (a solve's
-        # callback with G's values and the right-hand side packed into one array took
-        # 138 to 169 us against 212 to 259 with the two apart; one core, load about 1).
+        # One operand and one result per callback: each costs on its own, so a solve's
+        # callback takes G's values and the right-hand side packed into one array.
         norm, ok = jax.pure_callback(host, jax.ShapeDtypeStruct((2,), jnp.float64), values,
                                      vmap_method="sequential")
         return Factor(values, norm, ok > 0.0)

@@ -20,6 +20,7 @@ group ``driftbench.problems``. Loaded code is trusted Python, run as it is.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib
 import importlib.util
@@ -74,8 +75,8 @@ class SizeError(SpecError):
 #: times the largest size the scaling study runs (16384), far below sizes whose building
 #: alone exhausts memory (``chain:N=1000000000`` asks for 15 GiB).
 SIZE_LIMIT = 100_000
-#: Whole-number parameters that are not sizes.
-NOT_SIZES = frozenset({"seed"})
+#: Whole-number parameters that are not sizes (a seed, a horizon in whole seconds).
+NOT_SIZES = frozenset({"seed", "t_end"})
 #: Size limits that problems declare (:func:`register`'s ``size_limit``), by name.
 SIZE_LIMITS: dict[str, int] = {}
 #: How a caller lifts the size limits, as error messages say it.
@@ -105,6 +106,11 @@ def register(name: str, origin: str | None = None, size_limit: int | None = None
         @register("spherical-pendulum")
         def spherical_pendulum(L: float = 1.0, t_end: float = 100.0) -> Case:
             ...
+
+    A ``t_end`` parameter is the horizon: ``--t-end`` (a suite's ``t_end``, the Python
+    API's) sets it (:func:`at_horizon`), so the case and its reference are built for the
+    horizon that runs. A reference valid up to some time only (one computed by the
+    factory) declares it, :attr:`Reference.span`, and is never scored past it.
 
     Raises
     ------
@@ -155,6 +161,42 @@ def resolve(spec: str | ProblemSpec, origin: str = "") -> ProblemSpec:
                             f"parameters: {', '.join(arguments) or 'none'}")
         arguments[key] = parse_value(text, arguments[key], f"problem {name!r}, parameter {key!r}")
     return ProblemSpec(name, tuple(arguments.items()), spec, origin)
+
+
+#: The factory parameter that is the horizon (:func:`at_horizon`).
+HORIZON = "t_end"
+
+
+def at_horizon(spec: str | ProblemSpec, t_end: float | None) -> ProblemSpec:
+    """``spec`` resolved, with its factory's ``t_end`` parameter set to the horizon
+    ``t_end`` (``None``: as it is).
+
+    A horizon is a parameter of the case wherever the factory takes one: the factory
+    builds the case, the parameters it records and its reference for the horizon that
+    runs, so a reference computed up to the factory's own ``t_end`` is never scored past
+    it. A factory without a ``t_end`` parameter gets its spec back unchanged; its case is
+    cut to the horizon (:meth:`Case.with_t_end`) and scored only within its reference's
+    :attr:`~problems.case.Reference.span`.
+
+    Raises
+    ------
+    SpecError
+        A horizon that is not a whole number for a factory whose ``t_end`` is one.
+    """
+    spec = resolve(spec)
+    arguments = spec.kwargs
+    if t_end is None or HORIZON not in arguments:
+        return spec
+    default = parameters(spec.name)[HORIZON]
+    if isinstance(default, int) and not isinstance(default, bool):
+        if not float(t_end).is_integer():
+            raise SpecError(f"problem {spec.name!r}: its {HORIZON} is a whole number, and the "
+                            f"horizon {t_end!r} is not")
+        value: object = int(t_end)
+    else:
+        value = float(t_end)
+    arguments[HORIZON] = value
+    return dataclasses.replace(spec, arguments=tuple(arguments.items()))
 
 
 def make(spec: str | ProblemSpec, **overrides) -> Case:

@@ -233,6 +233,7 @@ def andrews(setting: str = "testset", t_end: float = 0.0) -> Case:
         scored=tuple(range(7)),
         times=(T_END,),
         floor=REF_FLOOR,
+        span=(0.0, T_END),
     )
     return make_case("andrews", system, Q0, np.zeros(7), (0.0, t_end or DURATIONS[setting]),
                      dict(PARAMS), energy_scale=ENERGY_SCALES[setting], reference=reference)

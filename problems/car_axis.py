@@ -117,6 +117,7 @@ def car_axis(eps: float = 1e-2, M: float = 10.0, L: float = 1.0, L0: float = 0.5
         scored=tuple(range(8)),
         times=(T_END,),
         floor=REF_FLOOR,
+        span=(0.0, T_END),
     ) if default else None
     q0 = [0.0, L0, L, L0]
     v0 = [-L0 / L, 0.0, -L0 / L, 0.0]

@@ -13,7 +13,7 @@ import numpy as np
 
 from linalg.compiled import compile_lifted
 from problems.mechanics import Mechanics, System
-from problems.source import located
+from problems.source import ArgumentError, located, refuse
 
 #: Initial residuals at or below this are round-off and accepted as they are.
 CONSISTENT_TOL = 1e-12
@@ -21,8 +21,42 @@ CONSISTENT_TOL = 1e-12
 PROJECT_TOL = 1e-6
 
 
-class InconsistentInitialValues(ValueError):
+#: What a :class:`Reference` may be.
+REFERENCE_KINDS = ("exact", "published", "computed")
+
+
+class InconsistentInitialValues(ArgumentError):
     """Initial values violate the constraints by more than projection may repair."""
+
+
+def _number(value, what: str, low: float | None = None) -> float:
+    """``value`` as a finite float (at least ``low``), or :class:`ArgumentError` located at
+    the user's call."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise refuse(f"{what} = {value!r} must be a number", __file__)
+    if not (np.isfinite(value) and (low is None or value >= low)):
+        raise refuse(f"{what} = {value!r} must be finite"
+                     + ("" if low is None else f" and >= {low:g}"), __file__)
+    return float(value)
+
+
+def _numbers(values, what: str) -> tuple[float, ...]:
+    """A sequence of finite numbers as a tuple of floats (:func:`_number`)."""
+    if isinstance(values, (str, bytes)) or not np.iterable(values):
+        raise refuse(f"{what} = {values!r} must be a sequence of numbers", __file__)
+    return tuple(_number(x, what) for x in values)
+
+
+def _indices(values, what: str) -> tuple[int, ...]:
+    """A sequence of indices (whole numbers >= 0, not booleans) as a tuple of ints."""
+    if isinstance(values, (str, bytes)) or not np.iterable(values):
+        raise refuse(f"{what} = {values!r} must be a sequence of indices (a tuple of int)",
+                     __file__)
+    for i in values:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) or i < 0:
+            raise refuse(f"{what} = {values!r}: {i!r} is not an index (an int >= 0)",
+                         __file__)
+    return tuple(int(i) for i in values)
 
 
 @dataclass(frozen=True)
@@ -47,6 +81,11 @@ class Reference:
         for a closed form evaluated to round-off. A run's final error at or below it says
         only that the run is at least as accurate as the reference, so reports show such
         errors as "at reference floor" and fit no order through them.
+    span : (float, float), optional
+        The interval ``[t_a, t_b]`` on which ``solution`` is valid (a computed or stored
+        reference holds only up to where it was computed, and ``solution`` past it would
+        extrapolate); ``None`` for a closed form valid for every ``t``. No error is
+        scored against the reference outside it.
     """
 
     kind: str
@@ -55,13 +94,43 @@ class Reference:
     scored: tuple[int, ...]
     times: tuple[float, ...] | None = None
     floor: float = 0.0
+    span: tuple[float, float] | None = None
 
     def __post_init__(self):
-        if not (np.isfinite(self.floor) and self.floor >= 0.0):
-            raise ValueError(f"reference floor {self.floor!r} must be finite and >= 0")
+        if self.kind not in REFERENCE_KINDS:
+            raise refuse(f"Reference kind {self.kind!r} is not one of "
+                         f"{', '.join(REFERENCE_KINDS)}", __file__)
+        if not (isinstance(self.source, str) and self.source.strip()):
+            raise refuse(f"Reference source {self.source!r} must be a non-empty string (a "
+                         f"citation, or the command that regenerates it)", __file__)
+        if not callable(self.solution):
+            raise refuse(f"Reference solution must be callable, solution(t) -> (q, v), not "
+                         f"{type(self.solution).__name__}", __file__)
+        object.__setattr__(self, "scored", _indices(self.scored, "Reference scored"))
+        if not self.scored:
+            raise refuse("Reference scored is empty: name the components of (q, v) that "
+                         "the final error is taken over", __file__)
+        if self.times is not None:
+            times = _numbers(self.times, "Reference times")
+            if not times:
+                raise refuse("Reference times is empty (None: the reference exists at any t)",
+                             __file__)
+            object.__setattr__(self, "times", times)
+        object.__setattr__(self, "floor", _number(self.floor, "Reference floor", 0.0))
+        if self.span is not None:
+            span = _numbers(self.span, "Reference span")
+            if not (len(span) == 2 and span[0] <= span[1]):
+                raise refuse(f"Reference span {self.span!r} must be two finite times "
+                             f"(t_a, t_b) with t_a <= t_b", __file__)
+            object.__setattr__(self, "span", span)
 
     def available_at(self, t: float) -> bool:
-        """Whether the reference exists at time ``t``."""
+        """Whether the reference exists at time ``t``: within :attr:`span` and, where
+        :attr:`times` is given, at one of them (each to a relative 1e-12)."""
+        if self.span is not None and not (
+                self.span[0] - 1e-12 * max(1.0, abs(self.span[0])) <= t
+                <= self.span[1] + 1e-12 * max(1.0, abs(self.span[1]))):
+            return False
         if self.times is None:
             return True
         return any(abs(t - s) <= 1e-12 * max(1.0, abs(s)) for s in self.times)
@@ -86,8 +155,9 @@ class Perturbation:
     fixed: tuple[int, ...] = ()
 
     def __post_init__(self):
-        if not (self.position >= 0 and self.velocity >= 0):
-            raise ValueError(f"perturbation sizes must be >= 0: {self}")
+        object.__setattr__(self, "position", _number(self.position, "Perturbation position", 0.0))
+        object.__setattr__(self, "velocity", _number(self.velocity, "Perturbation velocity", 0.0))
+        object.__setattr__(self, "fixed", _indices(self.fixed, "Perturbation fixed"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,8 +229,8 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
     a state's projection depends neither on the others nor on the batch's size. The
     slices bound the batch of every LAPACK call: jaxlib splits a large batch across
     XLA's intra-op threads and waits for the pieces on those same threads, and two such
-    calls at once deadlocked on 2 cores (a batch of 4095 states of ``chain:N=8`` hung in
-    half the tries; 512 never did).
+    calls at once can deadlock where there are few threads (a batch of 4095 states of
+    ``chain:N=8`` could hang; 512 did not).
     """
     if np.ndim(q) == 2:
         width = PROJECT_WIDTH
@@ -253,36 +323,68 @@ def make_case(name: str, system: System, q0, v0, t_span: tuple[float, float],
     Residuals up to :data:`CONSISTENT_TOL` are accepted; up to :data:`PROJECT_TOL` they are
     projected away (recorded in ``notes['projected']``); larger ones, or non-finite values,
     raise :class:`InconsistentInitialValues` with the residuals. Every error leads with the
-    file and line of the call that made the case.
+    file and line of the call that made the case; so does every argument out of its
+    contract (:class:`~problems.source.ArgumentError`).
     """
+    where = sys._getframe(1)
+    if not (isinstance(name, str) and name.strip()):
+        raise ArgumentError(located(f"make_case name {name!r} must be a non-empty string",
+                                    where))
+    if not isinstance(system, System):
+        raise ArgumentError(located(f"{name}: make_case system must be a System, not "
+                                    f"{type(system).__name__}", where))
+    if not isinstance(params, Mapping):
+        raise ArgumentError(located(f"{name}: make_case params must be a mapping (a dict "
+                                    f"of the physical parameters), not "
+                                    f"{type(params).__name__}", where))
+    if isinstance(energy_scale, (bool, np.bool_)) or not isinstance(
+            energy_scale, (int, float, np.number)) or not (
+            np.isfinite(energy_scale) and energy_scale > 0):
+        raise ArgumentError(located(f"{name}: energy_scale = {energy_scale!r} must be a "
+                                    f"finite number > 0 (the size of the energy)", where))
+    if reference is not None:
+        if not isinstance(reference, Reference):
+            raise ArgumentError(located(f"{name}: make_case reference must be a Reference "
+                                        f"or None, not {type(reference).__name__}", where))
+        if max(reference.scored) >= 2 * system.n:
+            raise ArgumentError(located(
+                f"{name}: Reference scored index {max(reference.scored)} is past the state "
+                f"(q, v), which has 2 n = {2 * system.n} components", where))
+    if not isinstance(perturbation, Perturbation):
+        raise ArgumentError(located(f"{name}: make_case perturbation must be a Perturbation, "
+                                    f"not {type(perturbation).__name__}", where))
+    if perturbation.fixed and max(perturbation.fixed) >= system.n:
+        raise ArgumentError(located(f"{name}: Perturbation fixed index "
+                                    f"{max(perturbation.fixed)} is past q, which has n = "
+                                    f"{system.n} coordinates", where))
+    if isinstance(t_span, (str, bytes)) or not np.iterable(t_span) or len(t_span) != 2:
+        raise ArgumentError(located(f"{name}: t_span = {t_span!r} must be (t0, t_end)", where))
     q0 = np.asarray(q0, dtype=np.float64)
     v0 = np.asarray(v0, dtype=np.float64)
     if q0.shape != (system.n,) or v0.shape != (system.n,):
         raise InconsistentInitialValues(located(
             f"{name}: q0 {q0.shape} and v0 {v0.shape} must both have shape ({system.n},)",
-            sys._getframe(1)))
+            where))
     if not (np.all(np.isfinite(q0)) and np.all(np.isfinite(v0))):
         raise InconsistentInitialValues(located(f"{name}: initial values are not finite",
-                                                sys._getframe(1)))
-    t0, t_end = map(float, t_span)
-    if not np.isfinite(t_end) or t_end <= t0:
-        raise ValueError(located(f"{name}: t_end = {t_end} must be finite and > t0 = {t0}",
-                                 sys._getframe(1)))
+                                                where))
+    t0, t_end = _numbers(t_span, f"{name}: t_span")
+    if t_end <= t0:
+        raise ArgumentError(located(f"{name}: t_end = {t_end} must be > t0 = {t0}", where))
     # The constraints' shape first: with one too many, the extra one's value at q0 would
     # be reported as inconsistent initial values.
     shape = jax.eval_shape(lambda q, t: jnp.asarray(system.constraints(q, t)),
                            jnp.asarray(q0), jnp.asarray(t0)).shape
     if shape != (system.m,):
-        raise ValueError(located(f"{name}: constraints(q, t) returns shape {shape}, not "
-                                 f"({system.m},) (System m = {system.m})",
-                                 sys._getframe(1)))
+        raise ArgumentError(located(f"{name}: constraints(q, t) returns shape {shape}, not "
+                                    f"({system.m},) (System m = {system.m})", where))
     mech = system.mech
     pos, vel = residuals(mech, q0, v0, t0)
     if max(pos, vel) > PROJECT_TOL:
         raise InconsistentInitialValues(located(
             f"{name}: inconsistent initial values: |g(q0)| = {pos:.3e}, "
             f"|G v0 + g_t| = {vel:.3e} (projection is allowed up to {PROJECT_TOL:g})",
-            sys._getframe(1)))
+            where))
     if max(pos, vel) > CONSISTENT_TOL:
         q0, v0 = project(mech, q0, v0, t0)
         notes = {**notes, "projected": f"|g| = {pos:.2e}, |G v + g_t| = {vel:.2e} before projection"}

@@ -47,10 +47,8 @@ def link_constraints(q, l):
 
     Written on the coordinate sequences ``q[0::2]`` and ``q[1::2]``, not on the points as an
     ``(N, 2)`` array summed over its short axis: the same numbers, but XLA:CPU compiles the
-    steps that use ``g`` and its derivatives faster this way at large N (rattle on
-    ``chain:N=16384``, 100 steps of ``h = 1e-5``: 5.7 ms per step against 8.0, lobatto3ab3
-    28 against 34, and alike at N = 1024; minima of CPU time over solves interleaved in one
-    process, one core), which kept the time per step from growing faster than N.
+    steps that use ``g`` and its derivatives faster this way at large N, which keeps the
+    time per step from growing faster than N.
     """
     x = jnp.concatenate([jnp.zeros(1), q[0::2]])
     y = jnp.concatenate([jnp.zeros(1), q[1::2]])

@@ -57,8 +57,8 @@ MAX_SEED = (1 << 63) - 1
 #: Probes of the estimate of ``tr M(q0)`` that scales the velocity noise.
 TRACE_PROBES = 16
 #: Lanes whose references are integrated as one ODE (one compiled right-hand side for all
-#: of them, with one step sequence: on the pendulum an evaluation took 24 us for 256 lanes
-#: and 8 us for 16, a fifth of the cost per lane). Bounded like the projection's batches
+#: of them, with one step sequence: a fraction of the cost per lane of integrating them one
+#: by one). Bounded like the projection's batches
 #: (:data:`problems.case.PROJECT_WIDTH`). DOP853 controls one error norm over the whole
 #: block, so what tells a lane's accuracy is its own floor, measured lane by lane.
 REFERENCE_LANES = PROJECT_WIDTH
@@ -68,10 +68,9 @@ REFERENCE_RTOL = TIGHT_RTOL
 #: 0's reference was 3.3e-9 from the closed form, and its estimate 1.0e-8 at 1e-13 (1.3e-7
 #: at 1e-12, the stored references' looser tolerance).
 ESTIMATE_RTOL = 1e-13
-#: Most right-hand sides one integration of a block of references may evaluate (about
-#: 15 s on the pendulum); the lanes of a block that needs more get no reference. The
-#: pendulum over 100 s takes 6.8e4 at :data:`REFERENCE_RTOL`; the stiff flyball governor
-#: over 10 s 8e5 (16 lanes).
+#: Most right-hand sides one integration of a block of references may evaluate; the lanes
+#: of a block that needs more get no reference. The pendulum over 100 s takes 6.8e4 at
+#: :data:`REFERENCE_RTOL`; the stiff flyball governor over 10 s 8e5 (16 lanes).
 MAX_REFERENCE_EVALS = 200_000
 #: Bytes of references a process keeps, least recently used block first out (always the
 #: latest block): 256 bytes a lane on the pendulum, 2 MiB a lane on ``chain:N=16384``.
@@ -178,7 +177,7 @@ def references(case: Case, seed: int, first: int, stop: int, t: float
                         f"DOP853 at rtol = atol = {REFERENCE_RTOL:g}, projected; floor = "
                         f"difference to rtol = {ESTIMATE_RTOL:g}"),
                 solution=lambda _t, y=y: (y[:case.q0.size], y[case.q0.size:]),
-                scored=own.scored, times=(t,), floor=float(floor)))
+                scored=own.scored, times=(t,), floor=float(floor), span=(case.t0, t)))
     return out, tuple(why)
 
 

@@ -27,10 +27,9 @@ Each of the author's functions is wrapped in ``jax.jit`` once per system, so tha
 traced once per argument shape: a compiled loop calls ``M(q)`` or ``g`` in many places and
 under several transformations (a Radau step on ``andrews`` evaluates the mass 42 times
 while it is traced). XLA inlines the calls, so the compiled program does the same
-arithmetic up to the order of a few operations: 5 of the default suite's 339 runs moved, at
-round-off (at most 2.2e-10 in the final error of the chaotic double pendulum). This halved
-the tracing time of a set-up (``andrews`` / ``radau5``: 1.9 s to 0.9 s) and took ``make
-test`` with a warm cache from 6.1 to 6.5 min to 4.9 to 5.2 min.
+arithmetic up to the order of a few operations, so results agree at round-off (chaotic
+problems amplify it in their final error). Re-running the author's Python at every call
+would be about half of a set-up's tracing time.
 """
 
 from __future__ import annotations
@@ -54,6 +53,7 @@ from linalg.compiled import device_index  # noqa: E402
 from linalg.kkt import KKT_BAND_MAX, BandedMass, rcm  # noqa: E402
 from linalg.pattern import CACHED_ENTRIES, traced_sparsity  # noqa: E402
 from linalg.schur import DENSE_KKT_MAX, DENSE_MAX, choose  # noqa: E402
+from problems.source import refuse  # noqa: E402
 
 Array = jax.Array
 
@@ -70,6 +70,8 @@ class System:
         ``mass(q) -> (n, n)``, or a constant ``(n, n)`` matrix (dense or, for large
         systems, a scipy sparse matrix, so that it is never formed densely), or a constant
         diagonal ``(n,)``. Symmetric positive definite. ``None`` when ``kinetic`` gives it.
+        A function is taken as the kinetic energy ``v^T M(q) v / 2`` (the same path and
+        cost as ``kinetic``), its blocks traced from it (:attr:`Mechanics.mass_blocks`).
     constraints : callable
         ``g(q, t) -> (m,)``, holonomic; may depend on ``t`` (then set ``rheonomic``).
     potential : callable, optional
@@ -78,6 +80,9 @@ class System:
         ``f(t, q, v) -> (n,)``, non-conservative generalised forces.
     rheonomic : bool
         Whether ``g`` depends explicitly on time (energy is then not conserved).
+        Without a conserved energy (``forces`` or ``rheonomic``) the suite measures the
+        energy balance ``H - H0 - W`` instead, the work ``W`` derived from these same
+        functions (:meth:`Mechanics.power`): no invariant needs to be declared for it.
     invariants : mapping of str to callable
         Conserved quantities beyond energy, ``I(q, v) -> scalar`` (for example angular
         momentum components).
@@ -85,10 +90,11 @@ class System:
         The motion is chaotic: exact comparisons against a reference are meaningless and
         the drift gate reports but does not gate it.
     kinetic : callable, optional
-        ``T(q, v) -> scalar``, the kinetic energy ``v^T M(q) v / 2``, in place of ``mass``
-        for large systems: ``M`` is then never formed. Its pattern is traced from ``T``
-        (the Hessian in ``v``), and a block-diagonal one (one block per body) is solved
-        blockwise and on the structured linear algebra (:mod:`linalg.blocks`).
+        ``T(q, v) -> scalar``, the kinetic energy ``v^T M(q) v / 2``, in place of ``mass``:
+        ``M`` is then never formed. Its pattern is traced from ``T`` (the Hessian in
+        ``v``), and a block-diagonal one (one block per body; a small fully coupled ``M``
+        is one block) is solved blockwise and on the structured linear algebra
+        (:mod:`linalg.blocks`).
     """
 
     n: int
@@ -101,6 +107,31 @@ class System:
     invariants: Mapping[str, Callable[[Array, Array], Array]] = field(default_factory=dict)
     sensitive: bool = False
     kinetic: Callable[[Array, Array], Array] | None = None
+
+    def __post_init__(self):
+        # Refused here, at the user's System(...) line, not deep inside the first run.
+        for name in ("n", "m"):
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+                    or value < (1 if name == "n" else 0):
+                raise refuse(f"System {name} = {value!r} must be an int >= "
+                             f"{1 if name == 'n' else 0}", __file__)
+        if not callable(self.constraints):
+            raise refuse("System constraints must be callable, g(q, t) -> (m,)", __file__)
+        for name in ("potential", "forces", "kinetic"):
+            if getattr(self, name) is not None and not callable(getattr(self, name)):
+                raise refuse(f"System {name} must be callable or None", __file__)
+        if (self.mass is None) == (self.kinetic is None):
+            raise refuse("System: give the mass either as mass or as kinetic, not "
+                         + ("neither" if self.mass is None else "both"), __file__)
+        for name in ("rheonomic", "sensitive"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise refuse(f"System {name} = {getattr(self, name)!r} must be True or False",
+                             __file__)
+        if not (isinstance(self.invariants, Mapping) and all(
+                isinstance(k, str) and callable(f) for k, f in self.invariants.items())):
+            raise refuse("System invariants must map names to functions I(q, v) -> scalar",
+                         __file__)
 
     @cached_property
     def mech(self) -> "Mechanics":
@@ -118,18 +149,24 @@ class Mechanics:
     def __init__(self, system: System):
         self.system = system
         self.n, self.m = system.n, system.m
-        if (system.mass is None) == (system.kinetic is None):
-            raise ValueError("give the mass either as mass or as kinetic, not "
-                             + ("neither" if system.mass is None else "both"))
         # The user's functions, each traced once per argument shape: a compiled loop calls
         # them in many places and under several transformations, and re-running their
-        # Python at every call was half of a set-up's tracing time (module notes).
+        # Python at every call would be half of a set-up's tracing time (module notes).
         self._mass_fn = jax.jit(system.mass) if callable(system.mass) else None
         self._potential = None if system.potential is None else jax.jit(system.potential)
         self._constraints = jax.jit(system.constraints)
         self._forces = None if system.forces is None else jax.jit(system.forces)
-        self.kinetic = None if system.kinetic is None else jax.jit(system.kinetic)
-        self.constant_mass = self.kinetic is None and not callable(system.mass)
+        #: The kinetic energy ``T(q, v) = v^T M(q) v / 2`` of a configuration-dependent
+        #: mass, however it was given: every quantity of a varying mass is derived from it
+        #: (or from ``M(q)`` where that was given and is cheaper), so that one physics
+        #: written with ``mass`` or with ``kinetic`` takes one path at one cost.
+        self.kinetic = None
+        if system.kinetic is not None:
+            self.kinetic = jax.jit(system.kinetic)
+        elif self._mass_fn is not None:
+            mass_fn = self._mass_fn
+            self.kinetic = jax.jit(lambda q, v: 0.5 * v @ (mass_fn(q) @ v))
+        self.constant_mass = self.kinetic is None
         #: The constant diagonal of ``M`` when it is one (``None`` otherwise): such a mass is
         #: never formed as a matrix, so that its cost and memory stay ``O(n)``.
         self.mass_diagonal = None
@@ -165,23 +202,39 @@ class Mechanics:
                     dense = mass.toarray() if sp.issparse(mass) else mass
                     self._M = jnp.asarray(dense)
                     self._Minv = jnp.asarray(np.linalg.inv(dense))
-        # Energy is conserved only for a scleronomic system without applied forces.
+        # Energy is conserved only for a scleronomic system without applied forces; any
+        # other system balances its energy against the work done on it (power).
         self.has_energy = system.forces is None and not system.rheonomic
         self.separable = self.constant_mass and system.forces is None
 
     # --- mass, momentum, Hamiltonian -------------------------------------------------
     @cached_property
     def mass_blocks(self) -> Blocks | None:
-        """The block-diagonal structure of a mass given by ``kinetic`` (``None`` for any
-        other mass, or where a block exceeds :data:`linalg.blocks.BLOCK_MAX`).
+        """The block-diagonal structure of a configuration-dependent mass (``None`` for a
+        constant one, or where a block exceeds :data:`linalg.blocks.BLOCK_MAX`); a fully
+        coupled small ``M(q)`` is one block.
 
-        The pattern is the Hessian pattern of ``T`` in ``v``, traced from ``T`` at ``q = 0``
-        (structural, like ``G``'s)."""
+        Structural, like ``G``'s pattern: for ``mass(q)``, the entries of ``M`` that depend
+        on ``q`` (traced) and those that do not and are nonzero (their value at ``q = 0`` is
+        their value everywhere); for ``kinetic``, the Hessian pattern of ``T`` in ``v``,
+        traced at ``q = 0`` (a product of ``v`` with a matrix is traced as coupling all of
+        its entries, so there the pattern of ``M`` is not read off ``T``)."""
         if self.kinetic is None:
             return None
-        pattern = traced_sparsity(asdex.hessian_sparsity,
-                                  lambda v: self.kinetic(jnp.zeros(self.n), v), jnp.zeros(self.n))
-        blocks = Blocks(np.asarray(pattern.rows), np.asarray(pattern.cols), self.n)
+        # Numpy zeros: made with jnp inside a trace, they would be tracers.
+        n, zeros = self.n, np.zeros(self.n)
+        if self._mass_fn is None:
+            pattern = traced_sparsity(asdex.hessian_sparsity,
+                                      lambda v: self.kinetic(zeros, v), zeros)
+            rows, cols = np.asarray(pattern.rows), np.asarray(pattern.cols)
+        else:
+            varying = traced_sparsity(asdex.jacobian_sparsity,
+                                      lambda q: jnp.ravel(self._mass_fn(q)), zeros)
+            with jax.ensure_compile_time_eval():   # concrete even when asked in a trace
+                filled = np.ravel(np.asarray(self._mass_fn(jnp.asarray(zeros))) != 0)
+            filled[np.asarray(varying.rows, dtype=np.int64)] = True
+            rows, cols = np.divmod(np.flatnonzero(filled), n)
+        blocks = Blocks(rows, cols, n)
         return blocks if blocks.block_diagonal else None
 
     def mass_factor(self, q: Array) -> list[Array] | None:
@@ -197,9 +250,11 @@ class Mechanics:
         """Mass matrix ``M(q)`` (dense; :meth:`mass_times` avoids forming it)."""
         if self.mass_diagonal is not None:
             return jnp.diag(self._mass_diagonal)
+        if self._mass_fn is not None:
+            return self._mass_fn(q)
         if self.kinetic is not None or self.mass_band is not None:
             return jax.jacfwd(lambda v: self.mass_times(q, v))(jnp.zeros(self.n))
-        return self._M if self.constant_mass else self._mass_fn(q)
+        return self._M
 
     def mass_times(self, q: Array, x: Array) -> Array:
         """``M(q) x`` (x may be a vector or a matrix of columns)."""
@@ -208,7 +263,7 @@ class Mechanics:
             return (d[:, None] if x.ndim == 2 else d) * x
         if self.mass_band is not None:
             return self.mass_band.times(x)
-        if self.kinetic is not None:
+        if self.kinetic is not None and self._mass_fn is None:
             # T is quadratic in v: its gradient in v at x is M(q) x.
             Mx = jax.grad(self.kinetic, argnums=1)
             return jax.vmap(lambda c: Mx(q, c), 1, 1)(x) if x.ndim == 2 else Mx(q, x)
@@ -226,7 +281,7 @@ class Mechanics:
         if self.mass_blocks is not None:
             return self.mass_blocks.solve(self.mass_factor(q), b)
         # LU, not Cholesky: under jacfwd the Cholesky solve's tangents become batched
-        # triangular solves, which XLA's CPU backend runs about 200x slower than LU's.
+        # triangular solves, which XLA's CPU backend runs far slower than LU's.
         return jnp.linalg.solve(self.mass(q), b)
 
     def mass_solver(self, q: Array, factors: list[Array] | None = None
@@ -237,9 +292,8 @@ class Mechanics:
         caller that keeps them across steps.
 
         For the solves that a frozen Newton matrix repeats at one ``q`` in every iteration:
-        XLA does not move the factorisation out of the Newton loop by itself, and RATTLE on
-        rigid-chain:N=16384 took 11.0 us per body and step with :meth:`solve_mass` there,
-        8.2 us with this (one core, load 2).
+        XLA does not move the factorisation out of the Newton loop by itself, and
+        :meth:`solve_mass` there would factorise at every iteration.
         """
         if self.mass_blocks is not None:
             factors = self.mass_factor(q) if factors is None else factors
@@ -275,11 +329,9 @@ class Mechanics:
         no solve here)."""
         if self.constant_mass:
             return self.grad_potential(q)
-        if self.kinetic is not None:
-            # H_q(q, p) = -L_q(q, v) at v = H_p(q, p): no derivative through the solve.
-            v = self.velocity(q, p) if v is None else v
-            return self.grad_potential(q) - jax.grad(self.kinetic, argnums=0)(q, v)
-        return jax.grad(self.hamiltonian, argnums=0)(q, p)
+        # H_q(q, p) = -L_q(q, v) at v = H_p(q, p): no derivative through the solve.
+        v = self.velocity(q, p) if v is None else v
+        return self.grad_potential(q) - jax.grad(self.kinetic, argnums=0)(q, v)
 
     def H_p(self, q: Array, p: Array) -> Array:
         """``dH/dp = M(q)^{-1} p``."""
@@ -296,6 +348,23 @@ class Mechanics:
         """Non-conservative generalised forces ``f(t, q, v)`` (zero when none)."""
         return jnp.zeros(self.n) if self._forces is None else self._forces(t, q, v)
 
+    def power(self, t: Array, q: Array, v: Array) -> Array:
+        """Power of the forces that :meth:`energy` does not hold, ``P = f(t, q, v) . v +
+        lam . g_t(q, t)``, so that ``dH/dt = P`` along exact solutions.
+
+        Along a solution ``dH/dt = v . (f - G^T lam)`` (the quadratic-velocity forces of a
+        varying mass do no net work), and ``-v . G^T lam = lam . g_t`` on the velocity
+        manifold ``G v + g_t = 0``: a moving (rheonomic) constraint works on the system
+        through its multiplier, from :meth:`accelerations`; a fixed one does no work, and
+        no multiplier is computed for it. Written with ``g_t`` rather than ``G v`` so that a
+        method's velocity drift is not counted as work.
+        """
+        P = self.external(t, q, v) @ v
+        if self.system.rheonomic:
+            _, lam = self.accelerations(t, q, v)
+            P = P + lam @ self.g_t(q, t)
+        return P
+
     def force(self, t: Array, q: Array, v: Array) -> Array:
         """Right-hand side of ``M a = force - G^T lam``.
 
@@ -307,9 +376,6 @@ class Mechanics:
             # Lagrange: d/dt (dT/dv) - dT/dq = M a + D_q(M(q) v)[v] - dT/dq.
             Mv = jax.jvp(lambda x: self.mass_times(x, v), (q,), (v,))[1]
             return F + jax.grad(self.kinetic, argnums=0)(q, v) - Mv
-        if not self.constant_mass:
-            dM_v = jax.jvp(self._mass_fn, (q,), (v,))[1]
-            F = F + 0.5 * jax.grad(lambda x: v @ self._mass_fn(x) @ v)(q) - dM_v @ v
         return F
 
     # --- constraints ---------------------------------------------------------------------
@@ -449,10 +515,9 @@ class Mechanics:
         L^{-T})^T = G M^{-1} G^T``.
 
         ``G``'s entries by compressed autodiff (:meth:`G_values`), then each row's pieces
-        on the blocks whitened by forward substitution with the blocks' factors: 1.5 to 1.9
-        us per body on rigid-chain:N=16384, against 2.4 as the compressed derivative of ``y
-        -> g(q + L^{-T} y)`` at ``y = 0`` (ten forward passes through the blockwise
-        substitution and ``g``; one core)."""
+        on the blocks whitened by forward substitution with the blocks' factors: cheaper
+        than the compressed derivative of ``y -> g(q + L^{-T} y)`` at ``y = 0``, whose
+        forward passes each go through the blockwise substitution and ``g``."""
         return self.mass_blocks.whiten_rows(self.mass_factor(q), self.G_values(q, t),
                                             self.whitening)
 

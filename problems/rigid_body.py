@@ -119,7 +119,7 @@ class EulerTop:
         return self.L * (J1 * w1 * w1 + J2 * w2 * w2) / (J1 * J1 * w1 * w1 + J2 * J2 * w2 * w2)
 
     def _phi_integral(self, a: float, b: float) -> float:
-        # Imported here: scipy.integrate takes 0.3 s to import, which every process that
+        # Imported here: scipy.integrate is slow to import, which every process that
         # imports the problems (the command line, each worker) would pay for nothing.
         from scipy.integrate import quad
 

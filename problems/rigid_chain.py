@@ -110,8 +110,8 @@ The mass is given through the kinetic energy (``System.kinetic``),
 
 body by body. It is evaluated as ``m_b |x_k'|^2 / 2 + 2 (E e_k')^T J (E e_k') + 2 j_0 (e_k .
 e_k')^2``, the same form without the 4 x 4 block: the suite differentiates ``T`` at every
-evaluation of ``H_q``, and through the block that took 0.59 us per body, without it 0.16 us
-(rigid-chain:N=4096, one core). ``M`` is never formed: its block-diagonal pattern is traced
+evaluation of ``H_q``, and through the block that costs several times as much per body.
+``M`` is never formed: its block-diagonal pattern is traced
 from ``T``, its blocks are factorised one by one and the structured linear algebra runs on
 ``G L^{-T}`` (:mod:`linalg.blocks`), with cost linear in ``N``.
 """

@@ -33,3 +33,26 @@ def located(message: str, *objects) -> str:
         if where:
             return f"{where}: {message.replace(f'{where}: ', '', 1)}"
     return message
+
+
+def caller(*skip: str) -> FrameType | None:
+    """The innermost frame on the stack outside the files ``skip`` and outside generated
+    code (a dataclass's ``__init__``): where the user's call of a constructor stands, for
+    :func:`located` (``None`` at the bottom of the stack)."""
+    frame = inspect.currentframe().f_back
+    while frame is not None and (frame.f_code.co_filename in (*skip, __file__)
+                                 or frame.f_code.co_filename.startswith("<")):
+        frame = frame.f_back
+    return frame
+
+
+class ArgumentError(ValueError):
+    """An argument of a constructor of the problem-authoring API that is out of its
+    contract, refused where the object is made: the message leads with the ``FILE:LINE``
+    of the user's call (:func:`caller`)."""
+
+
+def refuse(message: str, *skip: str) -> ArgumentError:
+    """:class:`ArgumentError` with ``message`` led by the place of the call that reached
+    the files ``skip`` (the constructor's own modules)."""
+    return ArgumentError(located(message, caller(*skip)))

@@ -106,7 +106,7 @@ value 3e-4 of the largest at ``t = 11.22``). There RATTLE at ``h = 0.01`` has no
 step: for the step from ``t = 11.22``, the smallest ``|g(q_1(lambda))|`` over all
 ``lambda`` that Levenberg-Marquardt finds from five starts is 5.6e-5, not 0 (measured).
 At ``h = 0.005`` RATTLE on the dense path runs to ``t = 20`` (max ``|g|`` 8e-16, energy
-error bounded at 1.4 % of its scale, angular momentum to 1e-13; 274 s), while the
+error bounded at 1.4 % of its scale, angular momentum to 1e-13), while the
 structured path's simplified Newton stops at ``t = 12.175``.
 
 Perturbed initial values (``perturb > 0``): positions stay symmetric and the initial

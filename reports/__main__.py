@@ -1,7 +1,10 @@
 """``python -m reports --db results/driftbench.sqlite --out results/``: rebuild the report.
 
 ``--scaling DIR`` adds the section of the scaling benchmark's results in ``DIR``
-(``python -m benchmarks.perf.scaling --out DIR``); ``--targets`` sets the accuracy targets of
+(``python -m benchmarks.perf.scaling --out DIR``); ``--efficiency DIR`` adds "What the
+harness costs" from ``DIR/efficiency.json`` (``python -m benchmarks.perf.efficiency --out
+DIR``) and marks the headline's cost verdicts where a family named is over twice its native
+cost per step; ``--targets`` sets the accuracy targets of
 the per-problem target tables; ``--x`` and ``--y`` choose the work-precision diagrams'
 axes. Bad input is one line on stderr and exit status 2.
 """
@@ -17,9 +20,8 @@ from benchmarks.records import EXIT_INPUT, CommandParser, one_line
 from benchmarks.store import STORE_NAME, StoreError
 from reports import build
 from reports.analysis import COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, PRECISION_AXES
+from reports.efficiency import EfficiencyError
 from reports.scaling import ScalingError
-
-
 
 
 def _target(text: str) -> float:
@@ -41,6 +43,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scaling", type=Path, metavar="DIR",
                    help="add the scaling section from DIR/scaling.json "
                         "(python -m benchmarks.perf.scaling --out DIR)")
+    p.add_argument("--efficiency", type=Path, metavar="DIR",
+                   help="add 'What the harness costs' from DIR/efficiency.json "
+                        "(python -m benchmarks.perf.efficiency --out DIR) and mark the "
+                        "headline's cost verdicts where a family is over 2x its yardstick")
     p.add_argument("--targets", type=_target, nargs="+", default=list(DEFAULT_TARGETS),
                    metavar="LEVEL",
                    help="accuracy targets of the per-problem target tables (default: "
@@ -59,8 +65,8 @@ def main(argv=None) -> int:
     try:
         paths = build(args.db or args.out / STORE_NAME, args.out, args.scaling,
                       targets=args.targets, x=tuple(dict.fromkeys(args.x)),
-                      y=tuple(dict.fromkeys(args.y)))
-    except (StoreError, ScalingError) as exc:
+                      y=tuple(dict.fromkeys(args.y)), efficiency=args.efficiency)
+    except (StoreError, ScalingError, EfficiencyError) as exc:
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
     except OSError as exc:  # an output folder that cannot be made or written

@@ -5,13 +5,16 @@ integrator or a problem, and nothing reconstructs what a run knew: energy scales
 classes, nominal orders, sensitivity and the reference's accuracy are columns of the stored
 record.
 
-Two rules run through every verdict here:
+Three rules run through every verdict here:
 
 - **Reference floor.** A final error at or below the reference's own accuracy
   (``reference_floor``) says only that the run is at least as accurate as the reference:
   it is shown as "at reference floor", a verdict counts it as the floor itself
   (:func:`accuracy`), and order fits leave it out. Final errors below the round-off
   plateau (:data:`ORDER_FLOOR`) are masked the same way in verdicts and fits.
+- **Asymptotic range.** An observed order is fitted only through points whose consecutive
+  pairwise orders agree within :data:`ORDER_TOLERANCE`, at least :data:`MIN_FIT_POINTS` of
+  them (:func:`fit`); the points left out are named with the reason.
 - **Timing spread.** Wall times are medians of repeated solves with their minimum and
   maximum; one run is named faster than another only when its slowest repeat beat the
   other's fastest (:func:`cheapest`; a run solved once is given the widest relative spread
@@ -28,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from benchmarks import gate, records
+from benchmarks import columns, gate, records
 from benchmarks.drift import fit_order
 from benchmarks.records import Status
 
@@ -43,6 +46,15 @@ SELF_ORDER_FLOOR = 1e-10
 #: step sizes a factor 2 apart by up to log2(1.1) = 0.14, while a point nearer the floor
 #: bends it by up to a whole order.
 FIT_MARGIN = 10.0
+#: Pairwise orders of an asymptotic range differ by at most this much (:func:`fit`). A
+#: quarter order between step sizes a factor 2 apart is an error ratio 2^0.25 = 1.19 off
+#: the leading term's: the next term still bends it by about a fifth. The tolerance is
+#: wider than the bend FIT_MARGIN allows near the floor (0.14), so a point kept above the
+#: floor does not break a range on its own.
+ORDER_TOLERANCE = 0.25
+#: Fewest points an order is fitted through: two pairwise orders, so that their agreement
+#: can show the points are in the asymptotic range; one pairwise order is shown, not fitted.
+MIN_FIT_POINTS = 3
 #: Default accuracy targets of the target tables (a suite's ``targets`` replace them).
 DEFAULT_TARGETS = (1e-4, 1e-8, 1e-12)
 
@@ -61,6 +73,13 @@ DEFAULT_X = ("wall", "evaluations")
 #: The metrics the accuracy-target tables cover.
 TARGET_METRICS = ("final-error", "g", "energy")
 LABELS = {column: label for column, label in (*PRECISION_AXES.values(), *COST_AXES.values())}
+
+
+def label(column: str) -> str:
+    """A column's label: its axis label (:data:`LABELS`), else its summary table header
+    (:mod:`benchmarks.columns`), else its name (an invariant's ``inv:NAME``)."""
+    declared = columns.TABLE.get(column)
+    return LABELS.get(column) or (declared and declared.header) or column
 
 
 def _num(x) -> float:
@@ -188,6 +207,9 @@ def energy_winner(runs: pd.DataFrame) -> Winner:
     """Smallest max relative energy error among the finished representative runs, with
     the drift class its run recorded."""
     rep = representative(runs)
+    if "rel_balance_error" in rep and rep["rel_energy_error"].isna().all() \
+            and rep["rel_balance_error"].notna().any():
+        return _balance_winner(rep)
     rep = rep[(rep["status"] == Status.OK) & rep["rel_energy_error"].notna()]
     if rep.empty:
         return Winner(None, math.nan, "no conserved energy, or no finished run")
@@ -195,6 +217,22 @@ def energy_winner(runs: pd.DataFrame) -> Winner:
     cls = f", {growth_kind(row['energy_growth'])}" if text(row.get("energy_growth")) else ""
     return Winner(row["integrator"], float(row["rel_energy_error"]),
                   f"{row['integrator']} ({setting(row)}): {fmt(row['rel_energy_error'])}{cls}")
+
+
+def _balance_winner(rep: pd.DataFrame) -> Winner:
+    """Without a conserved energy: the smallest max relative energy balance error among
+    the finished runs ``rep``, counted only above its quadrature floor (below it the
+    quadrature, not the method, sets the number)."""
+    rep = rep[rep["status"] == Status.OK]
+    value = rep["rel_balance_error"].astype(float)
+    rep = rep[value > rep["balance_floor"].astype(float).fillna(0.0)]
+    if rep.empty:
+        return Winner(None, math.nan, "energy balance: every finished run at its "
+                                      "quadrature floor, or none finished")
+    row = rep.loc[rep["rel_balance_error"].astype(float).idxmin()]
+    return Winner(row["integrator"], float(row["rel_balance_error"]),
+                  f"{row['integrator']} ({setting(row)}): {fmt(row['rel_balance_error'])} "
+                  f"(energy balance)")
 
 
 def is_sensitive(runs: pd.DataFrame) -> bool:
@@ -236,11 +274,6 @@ def accuracies(runs: pd.DataFrame, column: str) -> np.ndarray:
     return value
 
 
-def floor_text(row) -> str:
-    """How a final error at the floor is shown."""
-    return f"at reference floor (≤ {fmt(reference_floor(row))})"
-
-
 # --------------------------------------------------------------------------- timing
 
 @dataclass(frozen=True)
@@ -278,13 +311,15 @@ class Pick:
 
     ``row`` is the cheapest run (None without candidates); ``winner`` says whether it is
     named as the winner (by wall time: only when its slowest solve beat the fastest solve of
-    every other candidate); ``ties`` are the integrators whose cost cannot be told from its.
+    every other candidate); ``ties`` are the integrators whose cost cannot be told from its;
+    ``named`` the runs the verdict names (the cheapest and its ties).
     """
 
     row: pd.Series | None
     winner: bool = False
     ties: list[str] = field(default_factory=list)
     text: str = "none"
+    named: list[pd.Series] = field(default_factory=list)
 
 
 def widest_spread(runs: pd.DataFrame) -> float:
@@ -315,27 +350,29 @@ def cheapest(candidates: pd.DataFrame, cost: str, widest: float | None = None) -
     others = cands.iloc[1:]
     name = f"{best['integrator']} ({setting(best)})"
     if cost != "wall_s":
-        ties = [r["integrator"] for _, r in others.iterrows() if r[cost] == best[cost]]
+        tied = [r for _, r in others.iterrows() if r[cost] == best[cost]]
+        ties = [r["integrator"] for r in tied]
         text = f"{name}: {fmt(best[cost])} {LABELS[cost]}"
         if ties:
             text += f"; tied: {', '.join(ties)}"
-        return Pick(best, not ties, ties, text)
+        return Pick(best, not ties, ties, text, [best, *tied])
     t = timing(best)
     widest = widest_spread(cands) if widest is None else widest
 
     # A solve too long for autorange to repeat has no spread of its own: it is given the
     # widest one measured beside it (a ratio), on both sides of its one time.
     slowest = t.high if t.measured else t.high * widest
-    ties = [r["integrator"] for _, r in others.iterrows()
+    tied = [r for _, r in others.iterrows()
             if not (timing(r).low if timing(r).measured else timing(r).low / widest) > slowest]
+    ties = [r["integrator"] for r in tied]
     unmeasured = math.isnan(widest)
     text = f"{name}: {t.text()} s"
     if unmeasured and len(cands) > 1:
         text += "; fastest, but no winner: a timing spread was not measured (one solve)"
-        return Pick(best, False, ties, text)
+        return Pick(best, False, ties, text, [best, *tied])
     if ties:
         text += f"; no winner: within the timing spread of {', '.join(ties)}"
-    return Pick(best, not ties, ties, text)
+    return Pick(best, not ties, ties, text, [best, *tied])
 
 
 # --------------------------------------------------------------------------- accuracy
@@ -407,12 +444,16 @@ def matched(runs: pd.DataFrame) -> Matched | str:
 @dataclass
 class CostWinner(Winner):
     """A cost verdict in its parts: the matched accuracy (``accuracy``), the cheapest run
-    reaching it by wall time and by evaluations, and the methods that never reach it."""
+    reaching it by wall time and by evaluations, the methods that never reach it, and the
+    runs each of the two cheapest cells names (``wall_named``, ``evals_named``: the
+    cheapest and its ties)."""
 
     accuracy: str = ""
     by_wall: str = "none"
     by_evals: str = "none"
     missed: list[str] = field(default_factory=list)
+    wall_named: list[pd.Series] = field(default_factory=list)
+    evals_named: list[pd.Series] = field(default_factory=list)
 
 
 def cost_winner(runs: pd.DataFrame) -> CostWinner:
@@ -435,7 +476,8 @@ def cost_winner(runs: pd.DataFrame) -> CostWinner:
     row = by_wall.row
     return CostWinner(row["integrator"] if by_wall.winner else None,
                       _num(row["wall_s"]) if row is not None else math.nan, verdict,
-                      accuracy, by_wall.text, by_evals.text, missed)
+                      accuracy, by_wall.text, by_evals.text, missed, by_wall.named,
+                      by_evals.named)
 
 
 @dataclass
@@ -555,13 +597,28 @@ def final_state(row) -> np.ndarray | None:
     return np.concatenate([np.asarray(q, float), np.asarray(v, float)])
 
 
+#: Why a point is left out of an order fit. Below the threshold: the error is the
+#: reference's or round-off, not the method's. Above it: outside the asymptotic range
+#: (coarser: the leading error term does not dominate yet; finer: the error has left the
+#: power law, approaching round-off or the reference), or too few points to find one.
+AT_FLOOR, ROUND_OFF, NO_ERROR = "reference floor", "round-off", "no error"
+PRE_ASYMPTOTIC, PAST_RANGE = "pre-asymptotic", "past the asymptotic range"
+TOO_FEW, DISAGREE = "too few points", "pairwise orders disagree"
+#: The reasons of the points above the threshold ("" of the fitted ones).
+ABOVE_THRESHOLD = ("", PRE_ASYMPTOTIC, PAST_RANGE, TOO_FEW, DISAGREE)
+
+
 @dataclass
 class Convergence:
     """Error against step size of one fixed-step integrator, and the fit through it.
 
-    ``fitted`` marks the points the order was fitted from: those above ``threshold``, the
-    larger of the round-off plateau and :data:`FIT_MARGIN` times the reference floor
-    ``floor``. ``order`` is NaN with fewer than two fitted step sizes.
+    ``h`` ascending, ``err`` the error at each. ``fitted`` marks the points the order was
+    fitted from (:func:`asymptotic_range`); ``left_out`` says for each point why it was
+    not ("" where fitted; the reasons above). ``pairwise`` holds the orders between
+    consecutive usable points (those above ``threshold``, the larger of the round-off
+    plateau and :data:`FIT_MARGIN` times the reference floor ``floor``), coarsest pair
+    first. ``order`` is NaN where no asymptotic range of :data:`MIN_FIT_POINTS` points
+    exists.
     """
 
     integrator: str
@@ -569,6 +626,8 @@ class Convergence:
     err: np.ndarray
     order: float
     fitted: np.ndarray
+    left_out: list[str]
+    pairwise: np.ndarray
     nominal: float
     threshold: float
     floor: float = 0.0
@@ -577,15 +636,79 @@ class Convergence:
     def n_fit(self) -> int:
         return int(self.fitted.sum())
 
+    @property
+    def usable(self) -> np.ndarray:
+        """The points above the threshold: those the pairwise orders join."""
+        return np.array([why in ABOVE_THRESHOLD for why in self.left_out], dtype=bool)
+
+
+def pairwise_orders(h, err) -> np.ndarray:
+    """``log(e_i / e_(i+1)) / log(h_i / h_(i+1))`` of consecutive points, in their order."""
+    h, err = np.asarray(h, dtype=float), np.asarray(err, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(err[:-1] / err[1:]) / np.log(h[:-1] / h[1:])
+
+
+def asymptotic_range(pairwise: np.ndarray, tolerance: float = ORDER_TOLERANCE
+                     ) -> tuple[int, int] | None:
+    """The asymptotic range of ``pairwise`` orders (coarsest pair first): ``(i, j)`` such
+    that points ``i..j`` (of the ``len(pairwise) + 1`` points they join) are fitted.
+
+    The rule: the longest run of consecutive pairwise orders whose largest and smallest
+    differ by at most ``tolerance``, of at least ``MIN_FIT_POINTS - 1`` orders; of equally
+    long runs, the finest (the asymptotic range lies at small h). This is the asymptotic
+    range of a convergence study, where the observed order no longer changes under
+    refinement (Roache, *Verification and Validation in Computational Science and
+    Engineering*, 1998; Oberkampf & Roy, *Verification and Validation in Scientific
+    Computing*, 2010): a fit through points outside it averages the leading term's order
+    with higher terms' (coarse side) or with round-off and the reference's error (fine
+    side). None where no such run exists: two points give one pairwise order, which no
+    second one confirms.
+    """
+    best, longest = None, MIN_FIT_POINTS - 1
+    for i in range(len(pairwise)):
+        for j in range(i, len(pairwise)):
+            run = pairwise[i:j + 1]
+            if not np.all(np.isfinite(run)) or run.max() - run.min() > tolerance:
+                break
+            if len(run) >= longest:  # ties go to the later, finer run
+                best, longest = (i, j + 1), len(run)
+    return best
+
 
 def fit(integrator: str, h, err, nominal: float, plateau: float,
         floor: float = 0.0) -> Convergence:
-    """Fit the observed order through the points above the round-off ``plateau`` and
-    :data:`FIT_MARGIN` times the reference ``floor``."""
+    """Fit the observed order over the asymptotic range (:func:`asymptotic_range`) of the
+    points above the round-off ``plateau`` and :data:`FIT_MARGIN` times the reference
+    ``floor``: the least-squares slope of ``log err`` against ``log h`` there."""
     h, err = np.asarray(h, dtype=float), np.asarray(err, dtype=float)
+    order_h = np.argsort(h, kind="stable")
+    h, err = h[order_h], err[order_h]
     threshold = max(plateau, FIT_MARGIN * floor)
-    order, fitted = fit_order(h, err, threshold)
-    return Convergence(integrator, h, err, order, fitted, nominal, threshold, floor)
+    finite = np.isfinite(h) & np.isfinite(err) & (h > 0)
+    usable = finite & (err > threshold) & (err > 0)
+    left_out = [NO_ERROR if not f else "" if u else
+                AT_FLOOR if floor > 0 and e <= FIT_MARGIN * floor else ROUND_OFF
+                for f, u, e in zip(finite, usable, err)]
+    idx = np.flatnonzero(usable)[::-1]  # coarsest first
+    pairwise = pairwise_orders(h[idx], err[idx])
+    span = asymptotic_range(pairwise)
+    fitted = np.zeros(len(h), dtype=bool)
+    order = math.nan
+    if span is None:
+        why = TOO_FEW if len(idx) < MIN_FIT_POINTS else DISAGREE
+        for k in idx:
+            left_out[k] = why
+    else:
+        i, j = span
+        fitted[idx[i:j + 1]] = True
+        for k in idx[:i]:
+            left_out[k] = PRE_ASYMPTOTIC
+        for k in idx[j + 1:]:
+            left_out[k] = PAST_RANGE
+        order, _ = fit_order(h[fitted], err[fitted])
+    return Convergence(integrator, h, err, order, fitted, left_out, pairwise, nominal,
+                       threshold, floor)
 
 
 def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
@@ -637,16 +760,13 @@ def convergence(runs: pd.DataFrame) -> tuple[list[Convergence], str]:
 
 # --------------------------------------------------------------------------- history
 
-#: The metrics the drift gate compares, in the gate's own terms.
-GATE_METRICS = tuple(gate.TOLERANCES)
-
-
 @dataclass
 class History:
     """The gate's metrics across commits.
 
     ``commits``: one row per commit (``commit``, ``label``, ``started``, ``dirty``,
-    ``runs``), oldest first; ``values``: metric -> frame of run identity x commit label
+    ``runs``), oldest first; ``values``: gated metric (:data:`benchmarks.gate.TOLERANCES`)
+    -> frame of run identity x commit label
     (the latest run of each identity within each commit; NaN where not measured);
     ``regressions``: ``(identity, metric, from label, to label, change)`` between
     consecutive commits that measured the run: exactly the gating regressions of
@@ -680,7 +800,7 @@ def history(runs: pd.DataFrame) -> History:
     values = {m: pd.DataFrame(
         [[_num(rows[c][i].get(m)) if i in rows[c] and is_ok(rows[c][i]) else math.nan
           for c in commits["label"]] for i in identities],
-        index=identities, columns=list(commits["label"]), dtype=float) for m in GATE_METRICS}
+        index=identities, columns=list(commits["label"]), dtype=float) for m in gate.TOLERANCES}
     regressions = []
     labels = list(commits["label"])
     for ident in identities:

@@ -66,6 +66,7 @@ class Table:
     columns: list[str]
     rows: list[list[str]]
     caption: str = ""
+    fit: bool = False  # wraps every cell to fit the page's width instead of scrolling sideways
 
 
 @dataclass
@@ -155,9 +156,10 @@ CSS = """
 body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 0;
        color: #1b1b1b; background: #fff; line-height: 1.45; }
 main { max-width: 1200px; margin: 0 auto; padding: 1em 2em 3em; }
-nav.toc { background: #f4f6f8; border: 1px solid #dde2e6; padding: 0.6em 1.2em;
-          margin: 1em 0 2em; }
-nav.toc ul { margin: 0.2em 0; padding-left: 1.2em; }
+nav.toc { background: #f4f6f8; border: 1px solid #dde2e6; padding: 0.3em 1.2em;
+          margin: 0.6em 0 1em; }
+nav.toc summary { cursor: pointer; }
+nav.toc ul { margin: 0.2em 0; padding-left: 1.2em; font-size: 0.9em; }
 h1 { border-bottom: 2px solid #333; padding-bottom: 0.2em; }
 h2 { border-bottom: 1px solid #bbb; margin-top: 2em; }
 table { border-collapse: collapse; margin: 0.6em 0 1.2em; font-size: 0.85em; }
@@ -169,6 +171,9 @@ td.word { text-align: left; }
 td.text { text-align: left; white-space: normal; min-width: 18em; max-width: 40em;
           overflow-wrap: anywhere; }
 tr.bad td { background: #fdecea; }
+table.fit { width: 100%; }
+table.fit td, table.fit td.text { white-space: normal; min-width: 0; max-width: none;
+                                  overflow-wrap: anywhere; text-align: left; }
 caption { caption-side: top; text-align: left; font-style: italic; padding: 0.2em 0; }
 figure { margin: 1em 0 2em; }
 figure svg { max-width: 100%; height: auto; }
@@ -193,41 +198,55 @@ def _cell_class(text: str) -> str:
     return ' class="text"' if len(text) > WRAP_AT else ' class="word"'
 
 
+def _toc(doc: Document) -> str:
+    """The contents: one line per section (level 2), its subsections as links on that line,
+    named without the section's own subject (``pendulum: summary`` under ``Problem:
+    pendulum`` is ``summary``); folded, so that the headline opens the page."""
+    esc = html.escape
+    lines: list[list[str]] = []
+    subject = ""
+    for b in doc.blocks:
+        if not isinstance(b, Heading) or b.level not in (2, 3):
+            continue
+        link = f'<a href="#{esc(b.anchor)}">{{}}</a>'
+        if b.level == 2:
+            subject = b.text.split(": ", 1)[-1] + ": "
+            lines.append([link.format(esc(b.text))])
+        elif lines:
+            name = b.text[len(subject):] if b.text.startswith(subject) else b.text
+            lines[-1].append(link.format(esc(name)))
+    items = "".join(f"<li>{line[0]}" + (": " + " · ".join(line[1:]) if line[1:] else "")
+                    + "</li>" for line in lines)
+    return (f'<nav class="toc"><details><summary><strong>Contents</strong> '
+            f"({len(lines)} sections)</summary><ul>{items}</ul></details></nav>")
+
+
 def to_html(doc: Document, footer: list[str] | None = None) -> str:
     """One self-contained HTML page: inline CSS, inline SVG, no script, no outside resource."""
     esc = html.escape
-    toc: list[str] = []
     body: list[str] = []
-    open_sub = False
     open_details = False
     n_fig = 0
     for b in doc.blocks:
         if isinstance(b, Heading):
             heading = f'<h{b.level} id="{esc(b.anchor)}">{esc(b.text)}</h{b.level}>'
             if b.level == 2:
-                if open_sub:
-                    toc.append("</ul></li>")
-                    open_sub = False
                 if open_details:
                     body.append("</details>")
                     open_details = False
-                toc.append(f'<li><a href="#{esc(b.anchor)}">{esc(b.text)}</a>')
-                toc.append("<ul>")
-                open_sub = True
                 if b.collapsible:
-                    # Closed: the contents stay short; a link to anything inside opens it
+                    # Closed: the page stays short; a link to anything inside opens it
                     # (browsers open a <details> that holds the target of a fragment link).
                     heading = f'<details class="section"><summary>{heading}</summary>'
                     open_details = True
-            elif b.level == 3 and open_sub:
-                toc.append(f'<li><a href="#{esc(b.anchor)}">{esc(b.text)}</a></li>')
             body.append(heading)
         elif isinstance(b, Para):
             body.append(f"<p>{esc(b.text)}</p>")
         elif isinstance(b, Bullets):
             body.append("<ul>" + "".join(f"<li>{esc(i)}</li>" for i in b.items) + "</ul>")
         elif isinstance(b, Table):
-            parts = ['<div class="scroll"><table>']
+            wide = "" if b.fit else '<div class="scroll">'
+            parts = [wide + ('<table class="fit">' if b.fit else "<table>")]
             if b.caption:
                 parts.append(f"<caption>{esc(b.caption)}</caption>")
             parts.append("<thead><tr>" + "".join(f"<th>{esc(c)}</th>" for c in b.columns)
@@ -236,26 +255,21 @@ def to_html(doc: Document, footer: list[str] | None = None) -> str:
                 bad = ' class="bad"' if any(str(c) in BAD for c in row) else ""
                 parts.append(f"<tr{bad}>" + "".join(
                     f"<td{_cell_class(str(c))}>{esc(str(c))}</td>" for c in row) + "</tr>")
-            parts.append("</tbody></table></div>")
+            parts.append("</tbody></table>" + ("" if b.fit else "</div>"))
             body.append("".join(parts))
         elif isinstance(b, Figure):
             n_fig += 1
             svg = clean(svg_text(b), f"f{n_fig}-", keep_style=b.trusted)
             cap = f"<figcaption>{esc(b.caption)}</figcaption>" if b.caption else ""
             body.append(f'<figure id="fig-{file_stem(b.name)}">{svg}{cap}</figure>')
-    if open_sub:
-        toc.append("</ul></li>")
     if open_details:
         body.append("</details>")
-    # Empty sub-lists are legal but render as stray bullets in some browsers.
-    toc_html = re.sub(r"<ul></ul>", "", "".join(toc))
     foot = "".join(f"<p>{esc(line)}</p>" for line in (footer or []))
     return (
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
         f"<title>{esc(doc.title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n<main>\n"
-        f"<h1>{esc(doc.title)}</h1>\n"
-        f"<nav class=\"toc\"><strong>Contents</strong><ul>{toc_html}</ul></nav>\n"
+        f"<h1>{esc(doc.title)}</h1>\n{_toc(doc)}\n"
         + "\n".join(body)
         + f"\n<footer>{foot}</footer>\n</main>\n</body>\n</html>\n"
     )

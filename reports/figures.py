@@ -9,14 +9,18 @@ file.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
-import multiprocessing
 import os
-import signal
+import pickle
+import queue
+import subprocess
 import sys
 import textwrap
-from concurrent.futures import Future, ProcessPoolExecutor
+import threading
+import traceback
+from concurrent.futures import Future
 
 import numpy as np
 from matplotlib import rc_context
@@ -26,7 +30,7 @@ from matplotlib.ticker import Formatter, LogFormatter, LogLocator, NullLocator
 
 from benchmarks import gate
 from benchmarks.records import Status
-from reports.analysis import LABELS, Convergence, History, Standing, fmt
+from reports.analysis import LABELS, Convergence, History, Standing, fmt, label
 
 #: Widest log axis (decades) that gets minor ticks.
 MINOR_DECADES = 3
@@ -61,11 +65,15 @@ class Drawing:
     returns a :class:`~concurrent.futures.Future` of its SVG text, which the document reads
     when it writes the figure (:func:`reports.document.svg_text`). matplotlib draws in
     Python, one figure at a time per process, and drawing was about three quarters of a
-    report's build; with two processes the quick suite's report took 7.1 s instead of
-    10.0 s (load about 1.5; the rest is the tables' analysis, in this process). Workers
-    are spawned (the calling process may hold JAX's threads, which a fork would copy in an
-    unknown state) at the first submission. A figure function that raises raises where
-    its SVG is read.
+    report's build. A figure function that raises raises where its SVG is read.
+
+    A worker is a fresh interpreter that imports this module and nothing of the caller's
+    (:func:`_serve`, started through :mod:`subprocess` as the run pool's workers are,
+    :mod:`benchmarks.pool`): ``multiprocessing``'s ``spawn`` and ``forkserver`` run the
+    caller's main script again in every worker, which in a script without an ``if
+    __name__ == "__main__"`` guard starts the caller's sweep over again, and ``fork`` would
+    copy JAX's threads in an unknown state. One thread here feeds each worker, starting it
+    at its first figure.
 
     Parameters
     ----------
@@ -77,39 +85,123 @@ class Drawing:
     def __init__(self, jobs: int | None = None):
         usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
         self.jobs = max(1, jobs if jobs is not None else usable or 1)
-        # A spawned worker runs the main module's file again; a program read from
-        # standard input has none to run.
-        main = getattr(sys.modules.get("__main__"), "__file__", None)
-        if main is not None and not os.path.exists(main):
-            self.jobs = 1
-        self._pool: ProcessPoolExecutor | None = None
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._feeders: list[threading.Thread] = []
 
     def __call__(self, fn, *args) -> Future:
+        done: Future = Future()
         if self.jobs == 1:
-            done: Future = Future()
             try:
                 done.set_result(fn(*args))
             except Exception as exc:  # raised again where the SVG is read, as in a worker
                 done.set_exception(exc)
             return done
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.jobs, initializer=_deaf_to_ctrl_c,
-                                             mp_context=multiprocessing.get_context("spawn"))
-        return self._pool.submit(fn, *args)
+        if not self._feeders:
+            self._feeders = [threading.Thread(target=self._feed, daemon=True)
+                             for _ in range(self.jobs)]
+            for feeder in self._feeders:
+                feeder.start()
+        self._queue.put((done, fn, args))
+        return done
+
+    def _feed(self) -> None:
+        """Hand the queued figures one at a time to a worker of this thread's own, until
+        the ``None`` that :meth:`__exit__` queues; a worker that dies fails its figure and
+        the next figure starts another."""
+        worker = None
+        try:
+            while (item := self._queue.get()) is not None:
+                done, fn, args = item
+                if not done.set_running_or_notify_cancel():
+                    continue
+                try:
+                    request = pickle.dumps((fn, args))
+                except Exception as exc:  # raised where the SVG is read
+                    done.set_exception(exc)
+                    continue
+                try:
+                    worker = worker or _start_worker()
+                    worker.stdin.write(request)
+                    worker.stdin.flush()
+                    ok, value = pickle.load(worker.stdout)
+                except Exception as exc:  # the worker died, or its answer is unreadable
+                    _stop_worker(worker)
+                    code = None if worker is None else worker.returncode
+                    worker = None
+                    done.set_exception(RuntimeError(
+                        f"the drawing process failed (exit code {code}) while drawing "
+                        f"{getattr(fn, '__name__', fn)}: {exc!r}"))
+                    continue
+                (done.set_result if ok else done.set_exception)(value)
+        finally:
+            _stop_worker(worker)
 
     def __enter__(self) -> "Drawing":
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(cancel_futures=exc[0] is not None)
+        if exc[0] is not None:
+            # Interrupted or failed: what was not drawn yet is not wanted.
+            while True:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is not None:
+                    item[0].cancel()
+        for _ in self._feeders:
+            self._queue.put(None)
+        for feeder in self._feeders:
+            feeder.join()
+        self._feeders = []
 
 
-def _deaf_to_ctrl_c() -> None:
-    """A drawing worker ignores Ctrl-C, which a terminal sends to the whole process group:
-    the process that builds the report decides what an interrupt stops, and shuts the
-    workers down (no traceback from each of them)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _start_worker() -> subprocess.Popen:
+    """A drawing worker (:func:`_serve`) with this process's ``sys.path``, in a session of
+    its own: a Ctrl-C in the terminal reaches this process alone, which decides what an
+    interrupt stops."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    return subprocess.Popen([sys.executable, "-c", "from reports.figures import _serve; _serve()"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            env=env, start_new_session=True)
+
+
+def _stop_worker(worker: subprocess.Popen | None) -> None:
+    """Close a worker's input, on which it ends, and wait for it."""
+    if worker is None:
+        return
+    with contextlib.suppress(OSError):
+        worker.stdin.close()
+    try:
+        worker.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        worker.kill()
+        worker.wait()
+    worker.stdout.close()
+
+
+def _serve() -> None:
+    """A drawing worker's loop: read ``(fn, args)`` pickles from standard input until it
+    closes, and answer each with ``(True, svg)`` or ``(False, exception)`` on standard
+    output, which nothing else may write to (``print`` goes to standard error)."""
+    requests, answers = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr
+    while True:
+        try:
+            fn, args = pickle.load(requests)
+        except EOFError:
+            return
+        try:
+            answer = (True, fn(*args))
+        except Exception as exc:  # the caller raises it where the SVG is read
+            answer = (False, exc)
+        try:
+            blob = pickle.dumps(answer)
+        except Exception:  # an exception that does not pickle travels as its text
+            blob = pickle.dumps((False, RuntimeError(
+                "".join(traceback.format_exception_only(type(answer[1]), answer[1])).strip())))
+        answers.write(blob)
+        answers.flush()
 
 
 def palette(families: dict[str, list[str]]) -> dict[str, tuple]:
@@ -419,9 +511,9 @@ def work_precision(runs, colors: dict, title: str, x: tuple[str, ...], y: tuple[
 def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) -> str:
     """Error against step size, log-log (the report draws it when some run has a finite
     error), with fitted and nominal orders in the legend and a dashed slope of the nominal
-    order through each method's finest fitted point. Points left out of the fit (at the
-    reference floor or round-off) are drawn hollow, and the reference floor as a dotted
-    line."""
+    order through each method's finest fitted point. Points outside the asymptotic range
+    (:func:`reports.analysis.fit`) are drawn hollow, those at the reference floor or
+    round-off hollow and faint, and the reference floor as a dotted line."""
     with rc_context(RC):
         fig, axes = _figure(1, 1, 6.0, 4.2)
         ax = axes[0, 0]
@@ -430,15 +522,20 @@ def convergence(convs: list[Convergence], colors: dict, title: str, basis: str) 
             if not keep.any():
                 continue
             color, marker = colors[c.integrator]
-            fitted = "n/a" if math.isnan(c.order) else f"{c.order:.2f}"
+            fitted = "no fit" if math.isnan(c.order) else \
+                f"fitted {c.order:.2f} over {c.n_fit} points"
             nominal = "n/a" if math.isnan(c.nominal) else fmt(c.nominal)
             ax.loglog(c.h[keep], _floor(c.err[keep]), lw=1.0, color=color,
-                      label=f"{c.integrator}: fitted {fitted}, nominal {nominal}")
+                      label=f"{c.integrator}: {fitted}, nominal {nominal}")
             ax.loglog(c.h[c.fitted], _floor(c.err[c.fitted]), ls="none", marker=marker, ms=4,
                       color=color)
-            out = keep & ~c.fitted
-            ax.loglog(c.h[out], _floor(c.err[out]), ls="none", marker=marker, ms=5,
+            # Outside the asymptotic range: hollow; at the floor or round-off: hollow, faint.
+            outside = keep & ~c.fitted & c.usable
+            ax.loglog(c.h[outside], _floor(c.err[outside]), ls="none", marker=marker, ms=5,
                       mfc="none", color=color)
+            below = keep & ~c.usable
+            ax.loglog(c.h[below], _floor(c.err[below]), ls="none", marker=marker, ms=5,
+                      mfc="none", color=color, alpha=0.35)
             if not math.isnan(c.nominal) and c.fitted.any():
                 h0, e0 = c.h[c.fitted][-1], c.err[c.fitted][-1]
                 hs = np.array([c.h[keep][0], h0])
@@ -484,10 +581,10 @@ def history(hist: History) -> str:
             if lower and np.isfinite(values).any():
                 ax.set_yscale("log")
             if not np.isfinite(values).any():
-                _empty(ax, f"{LABELS.get(metric, metric)}: not measured")
+                _empty(ax, f"{label(metric)}: not measured")
                 continue
             ax.set_xticks(x, labels, rotation=30, ha="right")
-            ax.set_title(LABELS.get(metric, metric))
+            ax.set_title(label(metric))
         for ax in list(axes.flat)[len(metrics):]:
             ax.set_visible(False)
         _arrange(fig, rows, cols)

@@ -1,14 +1,18 @@
 """Build the report from a results store: ``report.md`` (figures beside it) and ``report.html``.
 
-Sections, in order: the headline (which method wins each problem for drift, for energy and
-for cost at matched accuracy), the history of the drift gate's metrics across commits
-(when the store holds several), one collapsible section per problem (summary table, drift
-series, work-precision diagrams, accuracy targets, convergence orders), the ensembles
-(:mod:`reports.ensembles`; ensemble runs appear there only), the study sections
+Sections, in order, after a folded contents line: the headline (which method wins each
+problem for drift, for energy and for cost at matched accuracy, in two tables that open the
+page and fit its width, then the overview figure), the history of the drift gate's metrics
+across commits (when the store holds several), one collapsible section per problem (summary
+table, drift series, work-precision diagrams, accuracy targets, convergence orders fitted
+over the asymptotic range), the ensembles (:mod:`reports.ensembles`; ensemble runs appear
+there only), the study sections
 (tables and figures stored by the studies a suite names, the seed reproduction among them:
 :mod:`studies`), the scaling
-section when a scaling benchmark's output folder is given (:mod:`reports.scaling`) and the
-provenance of the runs shown.
+section when a scaling benchmark's output folder is given (:mod:`reports.scaling`), what
+the harness costs when an efficiency benchmark's folder is given (:mod:`reports.efficiency`;
+the headline's cost verdicts then mark the families it finds over twice their native
+cost per step) and the provenance of the runs shown.
 
 Per-problem sections show the latest run of each identity (problem, integrator, setting,
 horizon); the history uses every stored run.
@@ -25,14 +29,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmarks import columns
+from benchmarks.columns import MAP, NOTE, TEXT, Column
 from benchmarks.files import replace_file
 from benchmarks.records import Status
 from benchmarks.store import artifact_table, load_artifacts, load_runs, load_series
-from reports import ensembles as ensemble_section, figures, scaling as scaling_section
+from reports import (efficiency as efficiency_section, ensembles as ensemble_section, figures,
+                     scaling as scaling_section)
 from reports.analysis import (COST_AXES, DEFAULT_TARGETS, DEFAULT_X, DEFAULT_Y, LABELS,
-                              PRECISION_AXES, Convergence, Target, at_floor, at_sweep_horizon,
+                              FIT_MARGIN, MIN_FIT_POINTS, ORDER_TOLERANCE, PRECISION_AXES,
+                              Convergence, Target, at_floor, at_sweep_horizon,
                               convergence, cost_winner, drift_winner, energy_winner,
-                              floor_text, fmt, history, is_sensitive, largest_floor, latest,
+                              fmt, history, is_sensitive, label, largest_floor, latest,
                               representative, setting, standings, targets as target_rows, text,
                               timing)
 from reports.document import Bullets, Document, Figure, Para, Table, to_html, to_markdown
@@ -41,12 +49,18 @@ from reports.svg import SvgError, clean
 TITLE = "driftbench report"
 #: Text of a missing value in a finished run: the metric does not apply.
 NOT_APPLICABLE = "n/a"
+#: Caption of each problem's summary table; a column's ``note`` follows where it is shown.
+SUMMARY_NOTE = ("Evaluations are force/residual evaluations; wall is the median of the timed "
+                "solves, min and max their spread; growth classes fit the windowed maxima "
+                "against t (exponent p of a power law); n/a: does not apply (no reference, no "
+                "conserved energy); at reference floor: the final error is within the "
+                "reference's own accuracy.")
 #: Rows of a study table shown in the report (the study's own files hold all of them).
 MAX_STUDY_ROWS = 60
 
 
 def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
-          y=DEFAULT_Y) -> list[Path]:
+          y=DEFAULT_Y, efficiency=None) -> list[Path]:
     """Write ``report.md``, its SVG figures and ``report.html`` under ``out_dir``.
 
     Parameters
@@ -62,6 +76,10 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
         The work-precision diagrams' cost axes (keys of
         :data:`~reports.analysis.COST_AXES`) and precision axes (keys of
         :data:`~reports.analysis.PRECISION_AXES`).
+    efficiency : path, optional
+        The output folder of ``python -m benchmarks.perf.efficiency``: the section "What the
+        harness costs" and the headline's notes on it
+        (:class:`reports.efficiency.EfficiencyError` if it holds none).
 
     Returns
     -------
@@ -71,6 +89,7 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     db_path, out_dir = Path(db_path), Path(out_dir)
     wp = (tuple(COST_AXES[k][0] for k in x), tuple(PRECISION_AXES[k][0] for k in y))
     scaling_data = scaling_section.load(scaling) if scaling is not None else None
+    efficiency_data = efficiency_section.load(efficiency) if efficiency is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = load_runs(db_path)
     artifacts = load_artifacts(db_path)
@@ -85,7 +104,7 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
     current = current[current["lanes"].isna()] if not current.empty else current
     with figures.Drawing() as draw:
         doc = _document(runs, current, ensembles, artifacts, series, scaling_data, draw,
-                        targets, wp)
+                        targets, wp, efficiency_data)
         built = f"Report built {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {db_path.name}."
         doc.add(Para(built))
         md, written = to_markdown(doc, out_dir)
@@ -96,17 +115,12 @@ def build(db_path, out_dir, scaling=None, targets=DEFAULT_TARGETS, x=DEFAULT_X,
 
 
 def _document(runs, current, ensembles, artifacts, series, scaling_data, draw, targets,
-              wp) -> Document:
+              wp, efficiency_data=None) -> Document:
     """The report's blocks, its figures submitted to ``draw`` (:class:`figures.Drawing`)."""
     members = _families(runs)
     colors = figures.palette(members)
     doc = Document(TITLE)
-    doc.add(Para(_scope(runs, pd.concat([current, ensembles]))))
-    if members:
-        doc.add(Para("Families (one hue each in the figures, a shade and marker per "
-                     "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
-                                                 for f, k in members.items()) + "."))
-    _headline(doc, current, ensembles, colors, draw)
+    _headline(doc, runs, current, ensembles, members, colors, draw, efficiency_data)
     _history(doc, runs, draw)
     for problem in sorted(current["problem"].unique()) if not current.empty else []:
         _problem(doc, problem, current[current["problem"] == problem], series, colors,
@@ -115,6 +129,8 @@ def _document(runs, current, ensembles, artifacts, series, scaling_data, draw, t
     _studies(doc, artifacts)
     if scaling_data is not None:
         scaling_section.section(doc, scaling_data, draw)
+    if efficiency_data is not None:
+        efficiency_section.section(doc, efficiency_data)
     _provenance(doc, runs, pd.concat([current, ensembles]))
     return doc
 
@@ -133,24 +149,28 @@ def _families(runs: pd.DataFrame) -> dict[str, list[str]]:
 
 
 def _scope(runs: pd.DataFrame, current: pd.DataFrame) -> str:
+    """One line: how many runs are shown, out of how many, and how many did not finish."""
     if runs.empty:
         return "The results store holds no runs yet."
     n_bad = int((current["status"] != Status.OK).sum())
     return (f"{len(current)} runs shown (the latest of each problem, integrator, setting and "
-            f"horizon) out of {len(runs)} stored, over {runs['session'].nunique()} invocations; "
-            f"{n_bad} of those shown did not finish (status failed, error or timeout). Wall "
-            f"times are the median of each run's timed solves, with the fastest and slowest "
-            f"and their number in brackets, on the machine named in the provenance section; "
-            f"they are only comparable within one invocation, and one run is called faster "
-            f"than another only when its slowest solve beat the other's fastest.")
+            f"horizon) out of {len(runs)} stored, over {runs['session'].nunique()} "
+            f"invocations; {n_bad} of those shown did not finish (status failed, error or "
+            f"timeout).")
 
 
 # --------------------------------------------------------------------------- headline
 
-def _headline(doc: Document, current: pd.DataFrame, ensembles: pd.DataFrame, colors: dict,
-              draw) -> None:
-    """Winners among the single runs (``current``); ensembles have their own verdicts."""
+def _headline(doc: Document, runs: pd.DataFrame, current: pd.DataFrame,
+              ensembles: pd.DataFrame, members: dict, colors: dict, draw,
+              efficiency_data=None) -> None:
+    """Winners among the single runs (``current``; ensembles have their own verdicts),
+    first of all: the verdict tables open the page, narrow enough to fit its width (two
+    tables, cells that wrap), and the rules, the overview figure and the families follow.
+    With ``efficiency_data``, a cost cell naming a family over twice its native cost per
+    step is marked and a line under the table says by how much."""
     doc.heading(2, "Headline")
+    doc.add(Para(_scope(runs, pd.concat([current, ensembles]))))
     if current.empty:
         doc.add(Para("No single runs: the runs here are ensembles, whose verdicts are in "
                      "their own section (Ensembles)." if not ensembles.empty else "No runs."))
@@ -158,6 +178,44 @@ def _headline(doc: Document, current: pd.DataFrame, ensembles: pd.DataFrame, col
     problems = sorted(current["problem"].unique())
     subs = {p: current[current["problem"] == p] for p in problems}
     costs = {p: cost_winner(sub) for p, sub in subs.items()}
+    doc.add(Table(["problem", "least drift: max(|g|, |G v + g_t|)",
+                   "least energy error: max |H - H0| / scale (or |H - H0 - W|: balance)"],
+                  [[p, drift_winner(subs[p]).text, energy_winner(subs[p]).text]
+                   for p in problems],
+                  "Drift and energy: each method's run at the longest horizon", fit=True))
+    notes: dict[str, None] = {}
+
+    def marked(cell: str, named: list) -> str:
+        if efficiency_data is None:
+            return cell
+        for run in named:
+            found = efficiency_section.note(efficiency_data, run)
+            if found:
+                notes[found] = None
+                cell = efficiency_section.mark(cell, run["integrator"])
+        return cell
+
+    doc.add(Table(["problem", "matched accuracy", "cheapest by wall time [s]",
+                   "cheapest by evaluations"],
+                  [[p, costs[p].accuracy, marked(costs[p].by_wall, costs[p].wall_named),
+                    marked(costs[p].by_evals, costs[p].evals_named)]
+                   for p in problems],
+                  "Cost at matched accuracy, at the sweeps' horizon", fit=True))
+    if notes:
+        doc.add(Para(f"{efficiency_section.MARK} Part of this cost is the harness's: "
+                     + "; ".join(notes) + f" ({efficiency_section.SECTION})."))
+    doc.add(Para("Drift: the smallest max(|g|, |G v + g_t|) of each method's run at the "
+                 "longest horizon (ties within 10x). Energy: the smallest max |H - H0| / "
+                 "energy scale of the same runs, with its growth class. Cost: at the sweeps' "
+                 "horizon, the matched accuracy is the median of the best accuracies the "
+                 "methods reached (final error where a reference exists, counted no better "
+                 "than the reference, else energy error); the cheapest run reaching it is "
+                 "named by wall time only when its slowest solve beat every other's fastest "
+                 "(a run solved once gets the widest spread measured beside it), and by "
+                 "force evaluations. Wall times are the median of each run's timed solves, "
+                 "with the fastest and slowest and their number in brackets, on the machine "
+                 "named in the provenance section; they are only comparable within one "
+                 "invocation."))
     doc.add(Figure("headline", draw(figures.overview,
                                     {p: standings(sub) for p, sub in subs.items()},
                                     {p: c.integrator for p, c in costs.items()}),
@@ -168,19 +226,10 @@ def _headline(doc: Document, current: pd.DataFrame, ensembles: pd.DataFrame, col
                    "accuracy (none where the fastest are within each other's timing spread). "
                    "Each problem's section places its methods by cost against drift and "
                    "energy error."))
-    doc.add(Para("Drift: the smallest max(|g|, |G v + g_t|) of each method's run at the "
-                 "longest horizon (ties within 10x). Energy: the smallest max |H - H0| / "
-                 "energy scale of the same runs, with its growth class. Cost: at the sweeps' "
-                 "horizon, the matched accuracy is the median of the best accuracies the "
-                 "methods reached (final error where a reference exists, counted no better "
-                 "than the reference, else energy error); the cheapest run reaching it is "
-                 "named by wall time only when its slowest solve beat every other's fastest "
-                 "(a run solved once gets the widest spread measured beside it), and by "
-                 "force evaluations."))
-    doc.add(Table(["problem", "drift", "energy", "matched accuracy", "cheapest by wall time [s]",
-                   "cheapest by evaluations"],
-                  [[p, drift_winner(subs[p]).text, energy_winner(subs[p]).text,
-                    costs[p].accuracy, costs[p].by_wall, costs[p].by_evals] for p in problems]))
+    if members:
+        doc.add(Para("Families (one hue each in the figures, a shade and marker per "
+                     "integrator): " + "; ".join(f"{f}: {', '.join(k)}"
+                                                 for f, k in members.items()) + "."))
 
 
 def _history(doc: Document, runs: pd.DataFrame, draw) -> None:
@@ -203,7 +252,7 @@ def _history(doc: Document, runs: pd.DataFrame, draw) -> None:
                    "mark regressions (listed below)."))
     if hist.regressions:
         doc.add(Table(["run", "metric", "from", "to", "change"],
-                      [[i, LABELS.get(m, m), c0, c1, ch] for i, m, c0, c1, ch in
+                      [[i, label(m), c0, c1, ch] for i, m, c0, c1, ch in
                        hist.regressions], "Regressions between consecutive commits"))
     else:
         doc.add(Para("No regression between consecutive commits."))
@@ -217,57 +266,45 @@ def _missing(row) -> str:
     return NOT_APPLICABLE if row["status"] == Status.OK else str(row["status"])
 
 
-def _cell(row, column: str) -> str:
-    """A metric cell: the number, or :func:`_missing`; a final error (and its scd) at the
-    reference's floor says so instead of giving the reference's error as the run's."""
-    value = row.get(column)
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return _missing(row)
-    if column in ("final_state_error", "scd") and at_floor(row):
-        return floor_text(row)
+def _cell(row, column: Column) -> str:
+    """A summary cell as ``column``'s declaration has it (:mod:`benchmarks.columns`): the
+    number, the text, a JSON map's entries, or :func:`_missing` (free text: blank); a value
+    whose floor applies says so instead of giving the floor's number as the run's."""
+    value = row.get(column.name)
+    if value is None or (isinstance(value, float) and math.isnan(value)) or value == "":
+        return "" if column.format == NOTE else _missing(row)
+    if column.format == NOTE:
+        return text(value)
+    if column.format == MAP:
+        try:
+            entries = json.loads(value)
+        except (TypeError, ValueError):
+            return _missing(row)
+        return "; ".join(f"{k}: {fmt(v)}" for k, v in entries.items()) or _missing(row)
+    if column.kind == TEXT:
+        return text(value)
+    judged = column.floor
+    if judged is not None:
+        floor, of = row.get(judged.column), row.get(judged.of)
+        if not pd.isna(floor) and floor > 0 and not pd.isna(of) and of <= floor:
+            return f"at {judged.label} (≤ {fmt(floor)})"
     return fmt(value)
 
 
-def _invariants(row) -> str:
-    try:
-        inv = json.loads(row.get("invariant_errors") or "{}")
-    except (TypeError, ValueError):
-        return ""
-    return "; ".join(f"{k}: {fmt(v)}" for k, v in inv.items())
+def _measured(runs: pd.DataFrame, column: Column) -> bool:
+    """Whether some run of ``runs`` has a value of ``column``."""
+    return column.name in runs and bool(runs[column.name].map(text).astype(bool).any())
 
 
 def _summary(doc: Document, runs: pd.DataFrame) -> None:
-    with_inv = runs["invariant_errors"].fillna("").astype(bool).any() \
-        if "invariant_errors" in runs else False
-    columns = ["integrator", "setting", "t_end", "status", "steps", "evaluations", "wall [s]",
-               "wall min [s]", "wall max [s]", "solves", "max |g|", "max |G v + g_t|",
-               "max rel. energy error", "|g| growth", "energy growth", "final error", "scd",
-               "linear solver"]
-    if with_inv:
-        columns.append("invariant errors")
-    columns.append("message")
-    rows = []
-    for _, r in runs.sort_values(["integrator", "h", "rtol"]).iterrows():
-        t = timing(r)
-        spread = [fmt(t.low), fmt(t.high), str(t.repeats)] if not math.isnan(t.median) \
-            else [_missing(r)] * 3
-        row = [r["integrator"], setting(r), fmt(r["t_end"]), str(r["status"]),
-               _cell(r, "n_steps"), _cell(r, "n_f_evals"), _cell(r, "wall_s"), *spread,
-               _cell(r, "max_pos_residual"), _cell(r, "max_vel_residual"),
-               _cell(r, "rel_energy_error"), text(r.get("pos_growth")) or _missing(r),
-               text(r.get("energy_growth")) or _missing(r),
-               _cell(r, "final_state_error"), _cell(r, "scd"),
-               text(r.get("linear_solver")) or _missing(r)]
-        if with_inv:
-            row.append(_invariants(r) or _missing(r))
-        row.append(text(r["message"]))
-        rows.append(row)
-    doc.add(Table(columns, rows, "Evaluations are force/residual evaluations; wall is the "
-                                 "median of the timed solves, min and max their spread; "
-                                 "growth classes fit the windowed maxima against t (exponent "
-                                 "p of a power law); n/a: does not apply (no reference, no "
-                                 "conserved energy); at reference floor: the final error is "
-                                 "within the reference's own accuracy."))
+    # A column that applies to some problems only (energy or its balance, invariants) is
+    # shown where some run measured it.
+    shown = [c for c in columns.summary() if not c.optional or _measured(runs, c)]
+    rows = [[r["integrator"], setting(r), fmt(r["t_end"]), str(r["status"]),
+             *(_cell(r, c) for c in shown)]
+            for _, r in runs.sort_values(["integrator", "h", "rtol"]).iterrows()]
+    doc.add(Table(["integrator", "setting", "t_end", "status", *(c.header for c in shown)],
+                  rows, " ".join([SUMMARY_NOTE, *(c.note for c in shown if c.note)])))
 
 
 def _floor_note(runs: pd.DataFrame) -> str:
@@ -366,12 +403,22 @@ def _problem(doc: Document, problem: str, runs: pd.DataFrame, series, colors,
         return
     doc.add(Figure(f"{problem}-convergence",
                    draw(figures.convergence, convs, colors, f"{problem}: convergence", basis),
-                   f"Fixed-step methods only; {basis}. Filled markers: fitted points; hollow: "
-                   f"left out (at the reference floor or round-off). Dashed: slope of the "
-                   f"nominal order."))
+                   f"Fixed-step methods only; {basis}. Filled markers: fitted points (the "
+                   f"asymptotic range); hollow: outside it (pre-asymptotic, past it, or no "
+                   f"range found); faint: at the reference floor or round-off. Dashed: slope "
+                   f"of the nominal order."))
     if convs:
-        doc.add(Table(["integrator", "fitted order", "nominal order", "points fitted",
-                       "step sizes fitted", "step sizes left out"],
+        doc.add(Para(f"Orders are fitted over the asymptotic range only: the longest run of "
+                     f"consecutive step sizes whose pairwise orders (log of the error ratio "
+                     f"over log of the step ratio, coarse to fine) agree within "
+                     f"{ORDER_TOLERANCE:g}, at least {MIN_FIT_POINTS} points (two pairwise "
+                     f"orders, so that one confirms the other); of equally long runs, the "
+                     f"finest. Coarser points are pre-asymptotic (higher error terms still "
+                     f"matter), finer ones past the range (round-off or the reference's "
+                     f"error); errors within {FIT_MARGIN:g}x of the reference floor or below "
+                     f"round-off are never fitted."))
+        doc.add(Table(["integrator", "fitted order", "nominal order", "fitted over",
+                       "pairwise orders, coarse to fine", "left out"],
                       [_order_row(c) for c in convs]))
 
 
@@ -384,17 +431,30 @@ def _target_row(t: Target) -> list[str]:
 
 
 def _order_row(c: Convergence) -> list[str]:
+    """One row of the order table: the fit and the step sizes it spans, or why there is
+    none; each pairwise order; each point left out with its reason."""
+    n_usable = int(c.usable.sum())
     if not math.isnan(c.order):
         fitted = f"{c.order:.2f}"
-    elif c.floor > 0:
-        fitted = (f"n/a: too few points above the reference floor ({c.n_fit} of "
-                  f"{len(c.h)} step sizes with error above {fmt(c.threshold)})")
+    elif len(c.h) < MIN_FIT_POINTS:
+        fitted = f"n/a: {len(c.h)} step size{'s' if len(c.h) > 1 else ''} run, " \
+                 f"{MIN_FIT_POINTS} needed"
+    elif n_usable < MIN_FIT_POINTS:
+        above = "the reference floor" if c.floor > 0 else "round-off"
+        fitted = (f"n/a: too few points above {above} ({n_usable} of {len(c.h)} step sizes "
+                  f"with error above {fmt(c.threshold)}; {MIN_FIT_POINTS} needed)")
     else:
-        fitted = f"n/a: fewer than 2 step sizes with error above round-off ({fmt(c.threshold)})"
+        fitted = (f"n/a: no {MIN_FIT_POINTS} consecutive step sizes whose pairwise orders "
+                  f"agree within {ORDER_TOLERANCE:g}")
+    span = "-"
+    if c.n_fit:
+        hs = c.h[c.fitted]
+        span = f"h = {fmt(hs.max())}..{fmt(hs.min())}, {c.n_fit} points"
     nominal = "n/a" if math.isnan(c.nominal) else fmt(c.nominal)
-    return [c.integrator, fitted, nominal, str(c.n_fit),
-            ", ".join(fmt(h) for h in c.h[c.fitted]) or "-",
-            ", ".join(fmt(h) for h in c.h[~c.fitted]) or "-"]
+    left = "; ".join(f"{fmt(h)} ({why})" for h, why in
+                     sorted(zip(c.h, c.left_out), reverse=True) if why)
+    return [c.integrator, fitted, nominal, span,
+            ", ".join(f"{p:.2f}" for p in c.pairwise) or "-", left or "-"]
 
 
 # --------------------------------------------------------------------------- studies

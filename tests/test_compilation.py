@@ -105,12 +105,43 @@ def test_the_identity_holds_the_code_the_xla_flags_and_the_run(monkeypatch):
     assert compilation.identity("pendulum", 0.01) != base
 
 
-def cli_run(out: Path, cache: Path, *args) -> dict:
+def test_a_cache_is_cold_without_entries_for_this_version(tmp_path):
+    where = compilation.folder(tmp_path)
+    assert compilation.cold(where)  # missing
+    where.mkdir()
+    assert compilation.cold(where)  # empty
+    other = tmp_path / "jax-0.0.1-jaxlib-0.0.1"
+    other.mkdir()
+    (other / "jit_run-0123-cache").write_bytes(b"x")
+    assert compilation.cold(where)  # another version's entries only
+    (where / "programs").mkdir()
+    (where / "programs" / "0123.program").write_bytes(b"x")
+    assert not compilation.cold(where)
+    assert not compilation.cold(None)  # off
+    note = compilation.first_run_note(where)
+    assert str(tmp_path) in note and "--compile-cache" in note and compilation.ENV in note
+
+
+def test_bad_input_on_a_cold_cache_gets_its_one_line_alone(tmp_path):
+    # The step limit is checked while the runs are validated, after the cache was found
+    # cold: the first-run note waits for the runs to start, and none starts.
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--problems", "pendulum", "--integrators",
+         "rattle", "--h", "1e-9", "--t-end", "1000", "--jobs", "1", "--no-report",
+         "--compile-cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
+        cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2
+    assert len(done.stderr.splitlines()) == 1 and done.stderr.startswith("error: ")
+
+
+def cli_run(out: Path, cache: Path, *args, stderr: list | None = None) -> dict:
     done = subprocess.run(
         [sys.executable, "-m", "benchmarks.run", "--problems", "pendulum", "--t-end", "1",
          "--jobs", "1", "--no-report", "--compile-cache", str(cache), "--out", str(out), *args],
         cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
+    if stderr is not None:
+        stderr.append(done.stderr)
     with open(out / "runs.csv", newline="") as f:
         return {row["integrator"]: row for row in csv.DictReader(f)}
 
@@ -119,12 +150,16 @@ def test_programs_kept_by_one_invocation_run_in_the_next_identically(tmp_path):
     # LAPACK (lobatto3ab2's Newton solves) from a program that was never lowered in the
     # loading process; the kept file written once from a compilation and once from an
     # executable that JAX's own cache served.
+    # The first invocation on the empty cache says once that it compiles; the next not.
     cache = tmp_path / "cache"
     args = ("--integrators", "lobatto3ab2", "rattle", "--h", "0.05")
-    cold = cli_run(tmp_path / "cold", cache, *args)
+    said: list[str] = []
+    cold = cli_run(tmp_path / "cold", cache, *args, stderr=said)
     kept = compilation.folder(cache) / "programs"
     assert programs_in(kept)
-    warm = cli_run(tmp_path / "warm", cache, *args)
+    warm = cli_run(tmp_path / "warm", cache, *args, stderr=said)
+    note = compilation.first_run_note(compilation.folder(cache))
+    assert said[0].count(note) == 1 and note not in said[1]
     for method in ("lobatto3ab2", "rattle"):
         assert cold[method]["status"] == warm[method]["status"] == "ok"
         assert warm[method]["setup_cache"] == "warm"

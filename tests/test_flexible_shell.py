@@ -25,7 +25,7 @@ def cantilever():
 
 
 def test_cantilever_plate_within_one_percent_at_24x24(cantilever):
-    # 1 % is the bar; Leissa's values are Ritz upper bounds lying
+    # Within 1 % of Leissa's values; they are Ritz upper bounds lying
     # about 0.5 % above the converged plate, so a tighter bar would test the
     # reference rather than the element.
     rel = cantilever[24] / np.array(CANTILEVER_CLASSICAL) - 1.0
@@ -67,7 +67,7 @@ def test_free_plate_has_six_rigid_body_modes_and_classical_elastic_ones():
 
 def test_free_box_has_six_rigid_body_modes():
     f = free_box_hz(0.5)
-    # The threshold for a rigid-body frequency is 1e-3 Hz; the first
+    # A rigid-body frequency is one below 1e-3 Hz; the first
     # elastic mode of the 1.5 mm box is near 1 Hz.
     assert np.all(np.abs(f[:6]) < 1e-3), f
     assert f[6] > 0.5, f

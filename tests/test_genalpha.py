@@ -14,7 +14,7 @@ import problems
 from benchmarks.execute import execute
 from benchmarks.records import RunSpec
 from integrators import Grid
-from integrators.genalpha import Coefficients
+from integrators.genalpha import Coefficients, velocity_scale
 from problems import SpecError
 
 import independent as ind
@@ -69,7 +69,8 @@ def test_observed_order_2_in_q_and_v(key, rho):
 @pytest.mark.slow
 @pytest.mark.parametrize("key", FORMS)
 def test_order_from_final_positions_at_t_100(key):
-    # The bar, at the default rho_inf: two runs over 100 s (about 42 periods).
+    # Second order over a long horizon, at the default rho_inf: two runs over 100 s
+    # (about 42 periods).
     hs = np.array([1e-3, 5e-4])
     errs = [errors(*solve(key, "pendulum", h, 100.0))[0] for h in hs]
     # Two points give the order exactly; after 42 periods the error is mostly phase, still
@@ -237,6 +238,10 @@ def test_iteration_matrix_conditioning_does_not_grow_as_h_shrinks(key):
         # The unknowns and the rows are blocks; the matrix is over them flattened.
         x0, unravel = ravel_pytree(z0)
         J = np.asarray(jax.jacfwd(lambda x: ravel_pytree(residual(unravel(x)))[0])(x0))
+        # The matrix the dense path factorises: the rows of the equations of motion (and
+        # of the velocity constraint) divided back by velocity_scale (GeneralizedAlpha.step).
+        w = velocity_scale(c, h)
+        J = J / np.r_[np.full(n, w), np.ones(m), np.full(len(J) - n - m, w)][:, None]
         scaled.append(np.linalg.cond(J))
         # The same matrix for the unknowns (a_{n+1}, lambda_{n+1}, mu) and the equations
         # as written, without the scalings.

@@ -52,15 +52,23 @@ def test_spectral_radius_at_infinity_is_one_plus_alpha_over_one_minus_alpha(alph
 
 
 @pytest.mark.parametrize("alpha, rho, t_end", [(0.0, 1.0, 2.0), (-1 / 3, 0.5, 20.0)])
-def test_shared_members_are_bit_identical_to_genalpha(alpha, rho, t_end):
+def test_shared_members_agree_with_genalpha(alpha, rho, t_end):
     """``alpha = 0`` is the trapezoidal rule (Newmark's average acceleration), which
     Chung and Hulbert's ``rho_inf = 1`` gives through ``alpha_m = alpha_f = 1/2`` (the
     averaging relation then keeps ``a = acc`` exactly); ``alpha = -1/3`` has the very
-    coefficients of ``rho_inf = 1/2``. Both do the same arithmetic, so the runs agree
-    bit for bit (over 2 s for the trapezoidal rule, before its index-3 instability
-    grows)."""
+    coefficients of ``rho_inf = 1/2``. The latter do the same arithmetic, and the runs
+    agree bit for bit. The former reach the same numbers by other operations (``x``
+    against ``(x / 2) / (1 / 2)`` in the averaging relation), which XLA need not compile
+    alike: they agree to round-off, which the index-3 trapezoidal rule magnifies in ``v``
+    as ``eps / h`` per step (2.2e-12 after 2 s)."""
     _, hht = solve(f"hht:alpha={alpha!r}", 0.01, t_end)
     _, ga = solve(f"genalpha:rho_inf={rho}", 0.01, t_end)
+    if alpha == 0.0:
+        assert np.max(np.abs(hht.q_final - ga.q_final)) <= 1e-14
+        assert np.max(np.abs(hht.v_final - ga.v_final)) <= 1e-10
+        assert np.max(hht.windows["pos"]) <= 1e-15 and np.max(ga.windows["pos"]) <= 1e-15
+        assert abs(hht.counts["n_newton"] - ga.counts["n_newton"]) <= 0.01 * ga.counts["n_newton"]
+        return
     assert np.array_equal(hht.q_final, ga.q_final) and np.array_equal(hht.v_final, ga.v_final)
     assert np.array_equal(hht.windows["pos"], ga.windows["pos"])
     assert hht.counts["n_newton"] == ga.counts["n_newton"]

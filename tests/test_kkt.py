@@ -8,6 +8,7 @@ import scipy.sparse as sp
 
 import problems
 from helpers import solve
+from test_spelling import coupled_mass_system
 from linalg.kkt import BandedMass, band_ldl, band_ldl_solve
 
 
@@ -118,9 +119,12 @@ def test_auto_choice_takes_the_augmented_system_for_a_large_banded_mass():
     # M is never formed: its products and solves are banded.
     assert mech.mass_band is not None and not hasattr(mech, "_Minv")
     assert problems.make("four-bar:N=2").mech.schur().name == "dense"
-    with pytest.raises(ValueError, match="needs a constant mass"):
-        problems.make("andrews").mech.schur("kkt")
-    with pytest.raises(ValueError, match="constant diagonal mass.*or kkt"):
+    # A configuration-dependent mass in blocks (andrews') is whitened onto a unit mass.
+    assert problems.make("andrews").mech.schur("kkt").name == "kkt"
+    with pytest.raises(ValueError, match="needs a constant or block-diagonal mass"):
+        coupled_mass_system().mech.schur("kkt")
+    # Its mass is one band of coupled points, not small blocks.
+    with pytest.raises(ValueError, match="diagonal or block-diagonal mass.*or kkt"):
         mech.schur("banded")
 
 

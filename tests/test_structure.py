@@ -16,6 +16,7 @@ from linalg.blocks import Blocks
 from linalg import pattern
 from linalg.pattern import SparseJacobian
 from helpers import solve
+from test_spelling import coupled_mass_system
 
 STRUCTURED = ("banded", "superlu")
 
@@ -213,11 +214,11 @@ def test_a_block_mass_gives_the_dense_result_on_the_structured_path(key):
 @pytest.mark.parametrize("spec, h", [("rigid-body", 0.01), ("andrews", 1e-5)])
 @pytest.mark.parametrize("key", ["rattle", "lobatto3ab3", "genalpha-ggl", "baumgarte-rk4"])
 def test_a_mass_matrix_function_written_as_kinetic_energy_takes_the_block_path(spec, h, key):
-    # rigid-body (4 x 4) and andrews (7 x 7) give M(q) as a matrix function, which has no
-    # traced structure: they take the dense path. The same mass written as T = v^T M(q)
-    # v / 2 has its blocks traced from T, whitened on the banded path: 50 steps there agree with
-    # the dense path on the system as given to round-off, the velocities to the positions'
-    # divided by h, as generalized-alpha's carry it. Measured: 1.2e-12 in q and 4.8e-10
+    # rigid-body (4 x 4) and andrews (7 x 7) give M(q) as a matrix function. The same
+    # mass written as T = v^T M(q) v / 2 has its blocks traced from T, whitened on the
+    # banded path: 50 steps there agree with the dense path on the system as given to
+    # round-off, the velocities to the positions' divided by h, as generalized-alpha's
+    # carry it. Measured: 1.2e-12 in q and 4.8e-10
     # relative in v for genalpha-ggl on andrews, 1.4e-14 or less for every other pair.
     case = problems.make(spec).with_t_end(50 * h)
     given = case.system
@@ -319,8 +320,10 @@ def test_assembled_iteration_pattern_holds_the_traced_one_and_is_checked(spec, f
 
 
 def test_no_assembled_pattern_for_a_mass_without_structure():
-    # andrews' mass is a dense function of q: its pattern is traced from the residual.
-    assert iteration_pattern(problems.make("andrews").mech, "ggl") is None
+    # A mass function coupling 13 coordinates has no blocks: its pattern is traced from
+    # the residual. andrews' M(q) has blocks, traced from the function.
+    assert iteration_pattern(coupled_mass_system().mech, "ggl") is None
+    assert iteration_pattern(problems.make("andrews").mech, "ggl") is not None
 
 
 def redundant_chain():
@@ -426,11 +429,12 @@ def test_banded_cholesky_drops_dependent_rows():
     assert np.max(np.abs(S @ x - rhs)) <= 1e-12 * np.max(np.abs(rhs))
 
 
-def test_structured_solvers_refuse_a_mass_that_is_not_a_constant_diagonal():
-    mech = problems.make("andrews").mech
-    assert mech.schur("auto").name == "dense"
-    with pytest.raises(ValueError, match="constant diagonal mass"):
-        mech.schur("banded")
+def test_structured_solvers_take_a_block_mass_and_refuse_one_without_blocks():
+    # andrews' M(q) has blocks of one and two coordinates; four-bar:N=64's constant mass
+    # couples its points along the whole chain.
+    assert problems.make("andrews").mech.schur("banded").name == "banded"
+    with pytest.raises(ValueError, match="diagonal or block-diagonal mass"):
+        problems.make("four-bar:N=64").mech.schur("banded")
 
 
 def test_auto_choice_follows_the_structure():
@@ -462,8 +466,12 @@ def test_fixed_step_families_name_their_own_crossover():
     # run, an ensemble and a Stepper alike (all three ask linear_algebra).
     assert path("baumgarte-rk4", "chain:N=4") == "dense"
     assert path("baumgarte-rk4", "chain:N=16") == "banded"
-    # Without a constant diagonal or block-diagonal mass every family stays dense.
-    assert path("lobatto3ab3", "andrews") == path("rattle", "flyball-governor") == "dense"
+    # A mass function in blocks (andrews', flyball-governor's) takes the structured path,
+    # as the same mass given by its kinetic energy does; without blocks every family stays
+    # dense.
+    assert path("lobatto3ab3", "andrews") == path("rattle", "flyball-governor") == "banded"
+    assert integrators.make("lobatto3ab3").linear_algebra(coupled_mass_system().mech).name \
+        == "dense"
     assert problems.make("car-axis").mech.schur().name == "dense"
 
 
@@ -474,7 +482,9 @@ def test_the_crossover_benchmark_compares_both_paths():
     assert "dense   ok" in line and "banded  ok" in line and "auto: banded" in line
     apart = float(line.split("apart ")[1].split()[0])
     assert apart <= 1e-13
-    assert crossover.pair("rattle", "andrews", 1e-4, 1e-3, 1) is None
+    # bricard's constant mass in natural coordinates has no structured solver below
+    # linalg.schur.DENSE_KKT_MAX constraints.
+    assert crossover.pair("rattle", "bricard", 1e-4, 1e-3, 1) is None
 
 @pytest.mark.slow
 def test_generalized_alpha_index3_gives_the_dense_result_on_the_structured_path():

@@ -180,20 +180,76 @@ def test_a_target_below_the_reference_floor_cannot_be_checked():
 
 def test_points_at_the_floor_are_left_out_of_the_fit():
     # Sixth order down to the floor 2e-9, then the reference's own error: 1.4e-9.
-    h = np.array([4e-4, 2e-4, 1e-4, 5e-5])
-    err = np.maximum(3e-6 * (h / 4e-4) ** 6, 1.4e-9)
+    h = np.array([8e-4, 4e-4, 2e-4, 1e-4, 5e-5])
+    err = np.maximum(1.92e-4 * (h / 8e-4) ** 6, 1.4e-9)
     c = fit("lobatto3ab4", h, err, 6.0, plateau=1e-12, floor=2e-9)
     assert c.threshold == pytest.approx(2e-8)  # a decade above the floor
-    assert list(c.h[c.fitted]) == [4e-4, 2e-4]  # the two points above 2e-8
+    assert list(c.h[c.fitted]) == [2e-4, 4e-4, 8e-4]  # the three points above 2e-8
+    assert c.left_out[:2] == ["reference floor"] * 2
     assert c.order == pytest.approx(6.0, abs=1e-9)
+    # Without the floor, the asymptotic range alone still leaves the two out, for the
+    # bend they put in the pairwise orders (5.07, then 0).
     unmasked = fit("lobatto3ab4", h, err, 6.0, plateau=1e-12)
-    assert unmasked.order < 5.0  # what the report showed before floors
+    assert unmasked.left_out[:2] == ["past the asymptotic range"] * 2
 
 
 def test_too_few_points_above_the_floor_give_no_order():
     h = np.array([2e-3, 1e-3, 5e-4])
     c = fit("lobatto3ab4", h, np.array([6e-11, 5.2e-12, 4.8e-12]), 6.0, 1e-12, 6e-12)
     assert c.n_fit == 0 and math.isnan(c.order)
+
+
+def geometric(h0, orders, e0=1.0):
+    """Step sizes halving from ``h0`` and errors whose pairwise orders are ``orders``."""
+    h = h0 / 2.0 ** np.arange(len(orders) + 1)
+    return h, e0 / 2.0 ** np.concatenate([[0.0], np.cumsum(orders)])
+
+
+def test_a_pre_asymptotic_point_is_left_out_and_named():
+    # The coarsest pair has order 3.10; the finer ones settle at 2: the fit through all four
+    # would say 2.3.
+    h, err = geometric(0.04, [3.10, 1.95, 2.02])
+    c = fit("rattle", h, err, 2.0, 1e-12)
+    assert c.pairwise == pytest.approx([3.10, 1.95, 2.02])
+    assert list(c.h[c.fitted]) == [0.005, 0.01, 0.02]
+    assert c.left_out == ["", "", "", "pre-asymptotic"]  # h ascending
+    assert c.order == pytest.approx(1.985, abs=1e-9)
+
+
+def test_two_pairwise_orders_that_disagree_give_no_order():
+    # A pendulum's RATTLE orders 3.10 then 1.89: a fit through the three would say 2.5.
+    h, err = geometric(0.04, [3.10, 1.89])
+    c = fit("rattle", h, err, 2.0, 1e-12)
+    assert math.isnan(c.order) and c.n_fit == 0
+    assert set(c.left_out) == {"pairwise orders disagree"}
+    assert c.pairwise == pytest.approx([3.10, 1.89])
+
+
+def test_two_points_give_a_pairwise_order_but_no_fit():
+    h, err = geometric(0.02, [2.0])
+    c = fit("rattle", h, err, 2.0, 1e-12)
+    assert math.isnan(c.order) and c.left_out == ["too few points"] * 2
+    assert c.pairwise == pytest.approx([2.0])
+
+
+def test_points_past_the_range_are_left_out_on_the_fine_side():
+    # Fourth order, then an error that levels off above round-off: the finest pair is out.
+    h, err = geometric(0.1, [4.0, 4.1, 4.0, 1.2])
+    c = fit("lobatto3ab3", h, err, 4.0, 1e-14)
+    assert c.left_out[0] == "past the asymptotic range" and c.n_fit == 4
+    assert c.order == pytest.approx(4.04, abs=1e-9)  # least squares over the four
+
+
+def test_of_equally_long_ranges_the_finest_is_fitted():
+    h, err = geometric(0.1, [2.0, 2.1, 3.0, 3.05])
+    c = fit("m", h, err, 3.0, 1e-14)
+    assert list(c.h[c.fitted]) == pytest.approx([0.00625, 0.0125, 0.025])
+    assert c.left_out[3:] == ["pre-asymptotic"] * 2
+
+
+def test_an_exact_zero_is_round_off_and_a_missing_error_says_so():
+    c = fit("m", [0.1, 0.05, 0.025], [1e-3, 0.0, math.nan], 2.0, 1e-12)
+    assert c.left_out == ["no error", "round-off", "too few points"]
 
 
 def test_convergence_reads_the_floor_from_the_runs():

@@ -12,6 +12,11 @@ that ``linear_solver=auto`` takes for that family
 (:meth:`integrators.fixed.FixedStep.dense_max`), with ``faster`` or ``SLOWER``. A pair
 where the problem's mass allows no structured solver is said so and skipped.
 
+A configuration-dependent mass is measured spelt both ways: as given (``mass=M(q)``) and,
+for a problem named ``NAME/kinetic``, as its kinetic energy ``T = v^T M(q) v / 2``
+(:func:`build`); the two spellings take one path at one cost
+(:attr:`problems.mechanics.Mechanics.kinetic`).
+
 What each number is: steps per second over the wall time of ``solve()`` (the compiled
 time loop and the read-back of the trajectory; set-up and compilation excluded), the
 median of ``--repeats`` solves, in this one process set up as the suite's workers are
@@ -24,6 +29,7 @@ Usage::
 
     python -m benchmarks.perf.crossover
     python -m benchmarks.perf.crossover --families rattle lobatto3ab3 --repeats 5
+    python -m benchmarks.perf.crossover --problems heavy-top heavy-top/kinetic
 """
 
 from __future__ import annotations
@@ -42,11 +48,44 @@ from benchmarks.records import CommandParser
 FAMILIES = ("rattle", "lobatto3ab3", "genalpha", "genalpha-ggl", "hht")
 
 #: ``(problem, h, t_end)``: one to eight constraints, constant diagonal masses with and
-#: without applied forces, and a block-diagonal, configuration-dependent one (rigid bodies).
+#: without applied forces, a block-diagonal, configuration-dependent one given by its
+#: kinetic energy (rigid bodies), and configuration-dependent masses given as matrix
+#: functions, each also spelt as its kinetic energy (``/kinetic``, :func:`build`): the
+#: heavy symmetric top in Euler parameters (one 4 x 4 block) and Andrews' mechanism
+#: (blocks of one and two coordinates).
 CASES = (("pendulum", 0.01, 20.0), ("sps-receiver", 0.05, 50.0),
          ("double-pendulum", 0.01, 10.0), ("car-axis", 1e-3, 3.0),
          ("chain:N=2", 0.01, 10.0), ("chain:N=4", 0.01, 10.0), ("chain:N=8", 0.01, 10.0),
-         ("rigid-chain:N=2", 0.005, 2.0))
+         ("rigid-chain:N=2", 0.005, 2.0),
+         ("heavy-top", 0.005, 10.0), ("heavy-top/kinetic", 0.005, 10.0),
+         ("andrews", 1e-4, 0.03), ("andrews/kinetic", 1e-4, 0.03))
+
+
+def build(problem: str, t_end: float):
+    """The case ``problem`` over ``[t0, t_end]``: a registered problem, or ``heavy-top`` (the
+    heavy symmetric top of ``tests/mechanisms.py``, which the suite does not ship); with
+    ``/kinetic``, its mass function ``M(q)`` given instead as the kinetic energy ``T(q, v) =
+    v^T M(q) v / 2``."""
+    import dataclasses
+
+    import problems
+
+    name, _, spelling = problem.partition("/")
+    if name == "heavy-top":
+        from tests.mechanisms import heavy_top
+
+        case = heavy_top("mass", t_end=t_end)
+    else:
+        case = problems.make(name).with_t_end(t_end)
+    if spelling != "kinetic":
+        return case
+    mass = case.system.mass
+    if not callable(mass):
+        raise ValueError(f"{problem}: the mass is not a function M(q), so there is no other "
+                         "spelling to measure")
+    twin = dataclasses.replace(case.system, mass=None,
+                               kinetic=lambda q, v: 0.5 * v @ (mass(q) @ v))
+    return dataclasses.replace(case, system=twin)
 
 
 def run(case, method, repeats: int):
@@ -63,9 +102,8 @@ def run(case, method, repeats: int):
 def pair(family: str, problem: str, h: float, t_end: float, repeats: int) -> str | None:
     """One line comparing the two paths; ``None`` where the mass allows no structured one."""
     import integrators
-    import problems
 
-    case = problems.make(problem).with_t_end(t_end)
+    case = build(problem, t_end)
     mech = case.mech
     structured = mech.schur("auto", dense_max=0).name
     if structured == "dense":
@@ -98,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
                            description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES,
                         help="fixed-step families to measure (default: all of them)")
+    parser.add_argument("--problems", nargs="+", default=[c[0] for c in CASES],
+                        choices=[c[0] for c in CASES],
+                        help="problems to measure (default: all of them)")
     parser.add_argument("--repeats", type=int, default=3, help="timed solves per path")
     args = parser.parse_args(argv)
     if args.repeats < 1:
@@ -107,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
           "ratio = structured / dense steps per second", flush=True)
     errors = 0
     for family in args.families:
-        for problem, h, t_end in CASES:
+        for problem, h, t_end in (c for c in CASES if c[0] in args.problems):
             start = time.perf_counter()
             try:
                 line = pair(family, problem, h, t_end, args.repeats)

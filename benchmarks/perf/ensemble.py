@@ -91,7 +91,7 @@ MEMORY_BAR = 2 << 30
 #: Step of the memory runs: at h = 0.01, 3 of 1024 chain lanes failed within 2000 steps
 #: and the slowest lane took 11.7 Newton iterations per step (each step of an ensemble
 #: costs its slowest lane's); at h = 0.005 every lane was ok, with 8.1 (1024 lanes, one
-#: core). Over 1e5 steps of h = 0.005, 71 of 16384 lanes failed (README, "Ensembles").
+#: core). Over 1e5 steps of h = 0.005, 71 of 16384 lanes failed (on a GPU).
 MEMORY_H = 5e-3
 #: Bound on max |g| over the receiver ensemble's lanes, and on a lane's final state against
 #: its single run.

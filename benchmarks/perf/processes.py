@@ -147,9 +147,11 @@ def run_process(command: list[str], limit: float,
     return ending, stdout, stderr, peak
 
 
-def compile_yardstick(name: str, workdir: Path) -> tuple[Path | None, str, bool]:
+def compile_yardstick(name: str, workdir: Path,
+                      flags: tuple[str, ...] = ()) -> tuple[Path | None, str, bool]:
     """Compile the C yardstick ``yardstick/NAME.c`` into ``workdir`` with the system C
-    compiler (``cc`` or ``gcc`` from ``PATH``, ``-O2``).
+    compiler (``cc`` or ``gcc`` from ``PATH``, ``-O2``), ``flags`` (include folders,
+    libraries) after the source.
 
     Returns ``(executable or None, note, failed)``: the note is the command and the
     compiler's version, or why there is no executable; ``failed`` is True when a compiler
@@ -159,7 +161,7 @@ def compile_yardstick(name: str, workdir: Path) -> tuple[Path | None, str, bool]
     if compiler is None:
         return None, "no C compiler (cc or gcc) on PATH: the C yardstick is skipped", False
     exe = workdir / name
-    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICKS / f"{name}.c"), "-lm"]
+    command = [compiler, "-O2", "-o", str(exe), str(YARDSTICKS / f"{name}.c"), *flags, "-lm"]
     done = subprocess.run(command, capture_output=True, text=True)
     if done.returncode != 0:
         return None, f"{' '.join(command)} failed: {done.stderr.strip()}", True

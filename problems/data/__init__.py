@@ -38,8 +38,9 @@ def state(entry: dict) -> tuple[np.ndarray, np.ndarray]:
 def reference(name: str, params: dict) -> Reference | None:
     """The stored computed reference of ``NAME.json`` for ``params`` (None if not stored).
 
-    Scored on every component of ``(q, v)``, at the stored times only; its floor is the
-    largest stored error estimate.
+    Scored on every component of ``(q, v)``, at the stored times only, and valid on the
+    span from ``t = 0``, where every stored integration starts (:mod:`problems.data.generate`),
+    to the last stored time; its floor is the largest stored error estimate.
     """
     stored = load(name)
     entries = [e for e in stored["entries"] if e["params"] == params]
@@ -56,4 +57,5 @@ def reference(name: str, params: dict) -> Reference | None:
         scored=tuple(range(2 * n)),
         times=tuple(sorted(by_time)),
         floor=worst,
+        span=(0.0, max(by_time)),
     )
