@@ -11,7 +11,6 @@ yardstick per step, part of its wall time in the report is the harness's, not th
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from numbers import Real
@@ -19,6 +18,7 @@ from pathlib import Path
 
 from reports.analysis import base_name, fmt, options, text
 from reports.document import Document, Para, Table
+from reports.scaling import results_file
 
 EFFICIENCY_FILE = "efficiency.json"
 SECTION = "What the harness costs"
@@ -51,17 +51,7 @@ def load(folder) -> dict:
     malformed (a missing key, a row without its family, problem or finite numbers, a ratio
     that is not positive)."""
     path = Path(folder) / EFFICIENCY_FILE
-    if not path.is_file():
-        raise EfficiencyError(f"{path} does not exist: run python -m benchmarks.perf.efficiency "
-                              f"--out {folder} first")
-    try:
-        data = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise EfficiencyError(f"{path} is not valid JSON: {exc}") from None
-    missing = [key for key in REQUIRED if not isinstance(data, dict) or key not in data]
-    if missing:
-        raise EfficiencyError(f"{path} lacks {', '.join(missing)}: not an efficiency "
-                              f"results file")
+    data = results_file(path, "efficiency", REQUIRED, EfficiencyError)
     if not isinstance(data["rows"], list) or not data["rows"]:
         raise EfficiencyError(f"{path}: 'rows' must be a non-empty list of comparisons")
     for key in ("goal_ratio_per_step", "rounds", "load"):

@@ -30,20 +30,26 @@ class ScalingError(ValueError):
     """A scaling results folder that is missing or cannot be read."""
 
 
-def load(folder) -> dict:
-    """The results in ``folder/scaling.json``; :class:`ScalingError` if absent or malformed."""
-    path = Path(folder) / SCALING_FILE
+def results_file(path: Path, benchmark: str, required, error: type[ValueError]) -> dict:
+    """The JSON object a perf benchmark wrote at ``path`` with the keys ``required``;
+    ``error`` (one line) if it is absent, not JSON or lacks one, naming the command that
+    writes it (``python -m benchmarks.perf.BENCHMARK --out FOLDER``)."""
     if not path.is_file():
-        raise ScalingError(f"{path} does not exist: run python -m benchmarks.perf.scaling "
-                           f"--out {folder} first")
+        raise error(f"{path} does not exist: run python -m benchmarks.perf.{benchmark} "
+                    f"--out {path.parent} first")
     try:
         data = json.loads(path.read_text())
-    except ValueError as exc:
-        raise ScalingError(f"{path} is not valid JSON: {exc}") from None
-    missing = [key for key in REQUIRED if not isinstance(data, dict) or key not in data]
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise error(f"{path} is not valid JSON: {exc}") from None
+    missing = [key for key in required if not isinstance(data, dict) or key not in data]
     if missing:
-        raise ScalingError(f"{path} lacks {', '.join(missing)}: not a scaling results file")
+        raise error(f"{path} lacks {', '.join(missing)}: not a {benchmark} results file")
     return data
+
+
+def load(folder) -> dict:
+    """The results in ``folder/scaling.json``; :class:`ScalingError` if absent or malformed."""
+    return results_file(Path(folder) / SCALING_FILE, "scaling", REQUIRED, ScalingError)
 
 
 def _us(seconds) -> str:
