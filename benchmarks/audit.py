@@ -17,6 +17,7 @@ from __future__ import annotations
 import traceback
 
 import jax
+from jax.extend.core import Literal
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
@@ -96,6 +97,22 @@ def _check(case, args, label: str, func, call, shape: tuple[int, ...]) -> np.nda
     return value
 
 
+def reads_t(g, q0, t0) -> bool:
+    """Whether ``g(q, t)``'s value depends on ``t`` at all: a path from ``t`` to an output
+    in its jaxpr (an operation with any input that depends on ``t`` is taken to depend on
+    it, nested calls included). Exact where sampling ``g_t`` is not: a ``t`` that acts on
+    part of the horizon only (a drive that starts late) has ``g_t = 0`` at most times."""
+    closed = jax.make_jaxpr(lambda q, t: jnp.asarray(g(q, t)))(
+        jnp.asarray(q0, jnp.float64), jnp.asarray(t0, jnp.float64))
+    jaxpr = closed.jaxpr
+    marked = {id(jaxpr.invars[1])}
+    for eqn in jaxpr.eqns:
+        if any(id(v) in marked for v in eqn.invars if not isinstance(v, Literal)):
+            marked.update(id(v) for v in eqn.outvars)
+    return any(id(v) in marked for v in jaxpr.outvars
+               if not isinstance(v, Literal))
+
+
 def _time_rates(case) -> tuple[np.ndarray, np.ndarray, float]:
     """``max_i |g_t|`` at the initial state and at :data:`TIME_SAMPLES` random states at
     random times of the horizon (a fixed seed: the audit is repeatable), the times, and
@@ -165,10 +182,17 @@ def check_rheonomic(case, notes: list[str] | None = None) -> None:
         return
     rates, times, scale = _time_rates(case)
     worst = int(np.argmax(rates))
-    moving = rates[worst] > 0.0 and rates[worst] * (case.t_end - case.t0) > RHEONOMIC_TOL * scale
+    reads = reads_t(s.constraints, case.q0, case.t0)
+    # Sampled g_t above round-off moves g; so does a g that reads t and whose g_t is zero at
+    # every sample (t acts elsewhere on the horizon). A g that reads t in terms that cancel
+    # shows g_t at the round-off of those terms, and is scleronomic.
+    moving = reads and (rates[worst] == 0.0
+                        or rates[worst] * (case.t_end - case.t0) > RHEONOMIC_TOL * scale)
     if moving and not s.rheonomic:
+        where = (f"|g_t| = {rates[worst]:.3g} at t = {times[worst]:.6g}" if rates[worst] > 0
+                 else f"they read t, though g_t = 0 at the {len(rates)} sampled times")
         raise _refuse(case, f"constraints(q, t) of problem {case.name!r} depend on t "
-                            f"(|g_t| = {rates[worst]:.3g} at t = {times[worst]:.6g}) but its "
+                            f"({where}) but its "
                             f"System is declared scleronomic: set rheonomic=True in System(...) "
                             f"(without it g_t is taken as 0)", s.constraints)
     if s.rheonomic and not moving and notes is not None:

@@ -66,7 +66,10 @@ def _balance(case: Case, traj: Trajectory) -> dict[str, float]:
     nan = dict(max_balance_error=math.nan, rel_balance_error=math.nan, balance_floor=math.nan)
     if case.mech.has_energy:
         return nan
-    _, error, floor = balance(case.mech, traj.samples)
+    try:
+        _, error, floor = balance(case.mech, traj.samples)
+    except np.linalg.LinAlgError:  # samples that share a time: no quadrature through them
+        return nan
     # A run that blew up has its balance up to its last finite state, and its status says
     # so; a finished run has all of it or none.
     if np.isnan(error).all() or (traj.status == Status.OK and np.isnan(error).any()):

@@ -65,11 +65,14 @@ HELP_COLUMNS = "88"
 # --------------------------------------------------------------------------- registries
 
 def integrator_rows() -> list[dict]:
-    """One row per registry key: the class and the traits of the key's preset instance."""
+    """One row per registry key of the project's own (not those a plugin or a test
+    registered in this process): the class and the traits of the key's preset instance."""
     import integrators
 
     rows = []
     for key in integrators.keys():
+        if integrators.REGISTRY[key][0].split(".", 1)[0] != "integrators":
+            continue
         method = integrators.make(key)
         cls = type(method)
         rows.append({
@@ -82,11 +85,14 @@ def integrator_rows() -> list[dict]:
 
 
 def problem_rows() -> list[dict]:
-    """One row per registered problem: its module, summary line and parameters."""
+    """One row per built-in problem (not those a file, a module or a plugin registered in
+    this process): its module, summary line and parameters."""
     import problems
 
     rows = []
     for name in problems.names():
+        if problems.origin(name) != "built-in":
+            continue
         factory = problems.REGISTRY[name]
         module = importlib.import_module(factory.__module__)
         rows.append({"name": name, "factory": factory, "module": factory.__module__,

@@ -310,8 +310,8 @@ class IDA(Integrator):
     **Multipliers out of the error test.** IDA's error test and its Newton convergence test
     use the weights ``1 / (rtol |y_i| + atol_i)``. The multipliers get
     ``atol_i = multiplier_atol = 1e30`` by default, which makes their weights so small that
-    they never decide a step. (The binding has no switch for IDA's own option of excluding
-    algebraic variables.)
+    they never decide a step (scikit-sundae has no switch for IDA's own option of excluding
+    algebraic variables, and the native driver makes the same calls).
 
     - ``ggl``: BDF's local error estimate for the index-2 variables ``lam, mu`` does not
       shrink like that of ``q, v`` and forces step-size reductions that buy no accuracy in
@@ -330,8 +330,8 @@ class IDA(Integrator):
 
     ``tests/test_ida.py`` checks both cases.
 
-    **Work counts.** The binding exposes only IDA's counts of Newton-residual and Jacobian
-    evaluations; the rest are derived exactly: ``n_steps`` counts the one-step returns,
+    **Work counts**, the same for both drivers. IDA's counts of Newton-residual and Jacobian
+    evaluations are read from it; the rest are derived exactly: ``n_steps`` counts the one-step returns,
     ``n_rejected`` the step attempts (distinct residual times, see :class:`Callbacks`)
     minus the steps, i.e. error-test plus convergence failures, and ``n_f_evals`` the
     residual calls we serve. IDA's Newton solver (SUNNonlinSol_Newton) evaluates the
@@ -340,9 +340,10 @@ class IDA(Integrator):
     Jacobian (a difference-quotient Jacobian adds one call per component of ``y`` per
     evaluation);
     ``n_jac_evals`` counts evaluations (and LU factorisations) of the iteration matrix.
-    ``extra["callback_s"]`` is the time spent in our residual and Jacobian callbacks
-    (``residual_s`` and ``jacobian_s`` apart); ``extra["initial_residual"]`` is
-    ``max |F(t0, y0, y0')|`` of the computed initial values.
+    With scikit-sundae, ``extra["callback_s"]`` is the time spent in our Python residual
+    and Jacobian callbacks (``residual_s`` and ``jacobian_s`` apart); the native driver has
+    none. ``extra["initial_residual"]`` is ``max |F(t0, y0, y0')|`` of the computed initial
+    values.
 
     Initial values ``(y0, y0')`` are computed from the case (:func:`consistent_values`);
     IDA's own initial-condition calculation is not used. IDA settings that the binding
@@ -386,7 +387,10 @@ class IDA(Integrator):
         a C program; it takes the dense linear solver only. ``scikit-sundae`` calls back
         into the compiled JAX functions from Python at every residual. ``auto`` takes
         ``native`` where it can be built (a C compiler, a system the code generator
-        knows, ``linsolver`` dense) and says in the run's ``sampling`` which ran.
+        knows, ``linsolver`` dense) and says in the run's ``sampling`` which ran. Both
+        drivers make the same IDA calls and take the same steps until round-off in the
+        residuals (C against XLA's code) changes a step-size decision; from there they part
+        by the method's own error, not more.
     """
 
     adaptive: ClassVar[bool] = True
@@ -474,6 +478,10 @@ class IDA(Integrator):
         atol = np.concatenate([np.full(2 * n, self.atol), np.full(n_mult, self.multiplier_atol)])
         algebraic = range(2 * n, 2 * n + n_mult)
         native, why = None, ""
+        if self.driver == "native" and linsolver != "dense":
+            raise ValueError(f"IDA: driver = 'native' takes the dense linear solver, and "
+                             f"linsolver = {self.linsolver!r} gives {linsolver!r} here "
+                             f"({m} constraints): set linsolver=dense")
         if self.driver != "scikit-sundae" and linsolver == "dense":
             try:
                 native = sundials.build(FORMULATIONS[self.formulation].residual(mech),

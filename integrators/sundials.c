@@ -3,7 +3,7 @@
  * integrators/sundials.py generates `res` and `jac` from the system's JAX functions
  * (linalg/codegen.py) and prepends them to this file; the steps then run without Python
  * between IDA and the callbacks. The settings are those scikit-sundae applies for
- * `integrators.ida.IDA` (same calls, same order), so both drivers take the same steps.
+ * `integrators.ida.IDA` (same calls, same order).
  * The declarations below are SUNDIALS 7's (sunrealtype double, sunindextype int), the
  * build that scikit-sundae's wheel ships and this file is linked against.
  */
@@ -123,12 +123,16 @@ Solver *solver_new(int neq, double t0, const double *y0, const double *yp0, doub
                    int *flag)
 {
     Solver *s = calloc(1, sizeof(Solver));
+    *flag = -1;
+    if (!s) return NULL;
     s->neq = neq;
     if ((*flag = SUNContext_Create(0, &s->ctx)) < 0) goto fail;
+    *flag = -1;
     s->y = N_VNew_Serial(neq, s->ctx);
     s->yp = N_VNew_Serial(neq, s->ctx);
     s->atol = N_VNew_Serial(neq, s->ctx);
     s->id = N_VNew_Serial(neq, s->ctx);
+    if (!s->y || !s->yp || !s->atol || !s->id) goto fail;
     copy(s->y, y0, neq);
     copy(s->yp, yp0, neq);
     copy(s->atol, atol, neq);

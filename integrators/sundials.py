@@ -6,9 +6,9 @@ autodiff-derived functions :mod:`integrators.ida` hands to scikit-sundae; here t
 written as straight-line C (:func:`linalg.codegen.c_function`), compiled with the system's
 C compiler together with the driver and linked against the SUNDIALS libraries that
 scikit-sundae's wheel ships. IDA is set up with the same calls, in the same order, as
-scikit-sundae makes them, so both drivers take the same steps (to round-off in the
-residuals). Python is reached once per :data:`CHUNK` internal steps, to hand the points to
-the drift record.
+scikit-sundae makes them, so both drivers take the same steps until round-off in the
+residuals (C against XLA's code) changes a step-size decision. Python is reached once per
+:data:`CHUNK` internal steps, to hand the points to the drift record.
 
 A library is built once per system and formulation and kept under the compile cache's
 folder (``$DRIFTBENCH_COMPILE_CACHE/native``, else ``~/.cache/driftbench/native``), named by
@@ -96,7 +96,13 @@ def compile_library(source: str) -> Path:
         except OSError as exc:
             raise NotNative(f"the C compiler {compiler!r} did not start: {exc}") from None
         if done.returncode != 0:
-            raise NotNative(f"{compiler} failed: {done.stderr.strip()[:400]}")
+            # The compiler's text names temporary paths: it is not part of the run's
+            # record (whose sampling must be the same for the same run), only its first
+            # line, without them, is.
+            first = next((line for line in done.stderr.splitlines() if "error" in line), "")
+            raise NotNative(f"the C compiler failed on the generated code"
+                            + (f" ({first.split('error', 1)[1].strip(': ')[:120]})"
+                               if first else ""))
         os.replace(built, target)  # atomic: workers building the same library race safely
     return target
 
@@ -119,7 +125,11 @@ def build(residual, neq: int, jacobian: bool):
     except Unsupported as exc:
         raise NotNative(f"the system's functions have no C form here: {exc}") from None
     source = "#include <math.h>\n" + "".join(parts) + DRIVER.read_text()
-    return Library(compile_library(source))
+    path = compile_library(source)
+    try:
+        return Library(path)
+    except OSError as exc:  # a cache folder on a noexec mount, say
+        raise NotNative(f"the compiled driver does not load: {exc.strerror or exc}") from None
 
 
 class Library:

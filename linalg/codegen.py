@@ -148,7 +148,8 @@ class Kernel:
 
     def call(self, function: str, *args, fold: Callable | None = None, ctype="double"):
         if fold is not None and not any(isinstance(a, Sym) for a in args):
-            return fold(*args)
+            with np.errstate(all="ignore"):
+                return float(fold(*map(np.float64, args)))
         operands = [self.operand(a) for a in args]
         return self.emit((function, *operands), f"{function}({', '.join(operands)})", ctype)
 
@@ -194,12 +195,12 @@ def _integer_power(kernel: Kernel, x, k: int):
     return result
 
 
-_ELEMENTARY = {  # primitive -> (C function, Python fold)
-    "sin": ("sin", math.sin), "cos": ("cos", math.cos), "tan": ("tan", math.tan),
-    "asin": ("asin", math.asin), "acos": ("acos", math.acos), "atan": ("atan", math.atan),
-    "sinh": ("sinh", math.sinh), "cosh": ("cosh", math.cosh), "tanh": ("tanh", math.tanh),
-    "exp": ("exp", math.exp), "log": ("log", math.log), "sqrt": ("sqrt", math.sqrt),
-    "abs": ("fabs", abs), "log1p": ("log1p", math.log1p), "expm1": ("expm1", math.expm1),
+_ELEMENTARY = {  # primitive -> (C function, fold: NumPy's, so NaN where C gives NaN)
+    "sin": ("sin", np.sin), "cos": ("cos", np.cos), "tan": ("tan", np.tan),
+    "asin": ("asin", np.arcsin), "acos": ("acos", np.arccos), "atan": ("atan", np.arctan),
+    "sinh": ("sinh", np.sinh), "cosh": ("cosh", np.cosh), "tanh": ("tanh", np.tanh),
+    "exp": ("exp", np.exp), "log": ("log", np.log), "sqrt": ("sqrt", np.sqrt),
+    "abs": ("fabs", np.abs), "log1p": ("log1p", np.log1p), "expm1": ("expm1", np.expm1),
 }
 _BINARY = {"add": "+", "add_any": "+", "sub": "-", "mul": "*", "div": "/"}
 _COMPARE = {"eq": "==", "ne": "!=", "lt": "<", "le": "<=", "gt": ">", "ge": ">="}
@@ -265,6 +266,19 @@ def _evaluate(kernel: Kernel, jaxpr, consts, args):
         if name in _NESTED:
             inner, inner_consts = _inner(params)
             outs = _evaluate(kernel, inner, inner_consts, ins)
+        elif not any(isinstance(x, Sym) for a in ins for x in np.asarray(a, object).flat):
+            # Constants are folded by the primitive itself, exactly as JAX computes them
+            # (integer division, other precisions, NaN rules).
+            concrete = [np.asarray(a.tolist(), dtype=v.aval.dtype)
+                        for a, v in zip(ins, eqn.invars)]
+            folded = eqn.primitive.bind(*concrete, **params)
+            outs = folded if eqn.primitive.multiple_results else [folded]
+            outs = [np.asarray(o).astype(object) if np.asarray(o).dtype.kind != "f"
+                    else np.vectorize(float, otypes=[object])(np.asarray(o, np.float64))
+                    for o in outs]
+        elif any(v.aval.dtype != np.float64 for v in eqn.outvars
+                 if np.issubdtype(v.aval.dtype, np.floating)):
+            raise Unsupported(f"a traced value in {eqn.outvars[0].aval.dtype} ({name})")
         else:
             result = _primitive(kernel, name, params, ins, eqn)
             outs = result if eqn.primitive.multiple_results else [result]
@@ -291,12 +305,17 @@ def _primitive(kernel: Kernel, name: str, params, ins, eqn):
         return _map(lambda a: kernel.binary("*", a, a), ins[0])
     if name == "rsqrt":
         return _map(lambda a: kernel.binary("/", 1.0, kernel.call(
-            "sqrt", a, fold=math.sqrt)), ins[0])
-    if name in ("pow", "atan2", "max", "min", "rem"):
-        function = {"pow": "pow", "atan2": "atan2", "max": "fmax", "min": "fmin",
-                    "rem": "fmod"}[name]
-        fold = {"pow": math.pow, "atan2": math.atan2, "max": max, "min": min,
-                "rem": math.fmod}[name]
+            "sqrt", a, fold=np.sqrt)), ins[0])
+    if name in ("max", "min"):
+        # lax.max and lax.min propagate NaN (C's fmax and fmin drop it).
+        op = ">" if name == "max" else "<"
+        return _map(lambda a, b: kernel.emit(
+            (name, kernel.operand(a), kernel.operand(b)),
+            f"({kernel.operand(a)} != {kernel.operand(a)} || {kernel.operand(a)} {op} "
+            f"{kernel.operand(b)}) ? {kernel.operand(a)} : {kernel.operand(b)}"), *ins)
+    if name in ("pow", "atan2", "rem"):
+        function = {"pow": "pow", "atan2": "atan2", "rem": "fmod"}[name]
+        fold = {"pow": np.power, "atan2": np.arctan2, "rem": np.fmod}[name]
         return _map(lambda a, b: kernel.call(function, a, b, fold=fold), *ins)
     if name == "sign":
         return _map(lambda a: kernel.emit(("sign", a.name), f"(double)(({a.name} > 0) - "
@@ -350,8 +369,9 @@ def _primitive(kernel: Kernel, name: str, params, ins, eqn):
     if name in ("reduce_sum", "reduce_max", "reduce_min"):
         x, axes = ins[0], tuple(params["axes"])
         combine = {"reduce_sum": lambda a, b: kernel.binary("+", a, b),
-                   "reduce_max": lambda a, b: kernel.call("fmax", a, b, fold=max),
-                   "reduce_min": lambda a, b: kernel.call("fmin", a, b, fold=min)}[name]
+                   "reduce_max": lambda a, b: _primitive(kernel, "max", {}, [a, b], eqn).item(),
+                   "reduce_min": lambda a, b: _primitive(kernel, "min", {}, [a, b], eqn).item()
+                   }[name]
         x = np.moveaxis(x, axes, range(-len(axes), 0))
         flat = x.reshape(x.shape[:x.ndim - len(axes)] + (-1,))
         out = np.empty(flat.shape[:-1], dtype=object)

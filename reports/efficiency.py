@@ -16,7 +16,7 @@ import re
 from numbers import Real
 from pathlib import Path
 
-from reports.analysis import base_name, fmt, options, text
+from reports.analysis import base_name, fmt, text
 from reports.document import Document, Para, Table
 from reports.scaling import results_file
 
@@ -32,7 +32,7 @@ ROW_NUMBERS = ("us_per_step", "yardstick_us_per_step", "ratio_per_step", "ratio_
 #: harness takes at least as long per step as the method itself.
 HARNESS_RATIO = 2.0
 #: The driver that calls IDA through Python callbacks; the benchmark holds it to no goal and
-#: a run uses it only when its options name it.
+#: a run takes its ratio only when its ``sampling`` says it ran on it.
 BINDING = "scikit-sundae"
 #: Mark of a headline cell that names a family above :data:`HARNESS_RATIO`.
 MARK = "†"
@@ -129,10 +129,10 @@ def ratio(data: dict, run) -> tuple[float, str] | None:
     """The ratio per step that applies to a run (a row of the results store), and the
     problem it comes from: the run's own problem where its family was timed there, else
     the family's largest over the problems timed; rows of the
-    :data:`BINDING` driver only for a run whose options name it. None when the family has
-    no yardstick."""
+    :data:`BINDING` driver only for a run that ran on it (its ``sampling`` says which
+    driver ran, whatever its options asked). None when the family has no yardstick."""
     family = base_name(run["integrator"])
-    binding = options(run).get("driver") == BINDING
+    binding = BINDING in text(run.get("sampling"))
     rows = [r for r in data["rows"]
             if r["family"] == family and (r["driver"] == BINDING) == binding]
     if not rows:

@@ -109,9 +109,12 @@ def test_a_run_of_the_binding_driver_takes_the_binding_ratio():
     data = {"rows": [row("ida-ggl", "pendulum", 1.1, driver="native"),
                      row("ida-ggl", "pendulum", 6.5, driver="scikit-sundae")]}
     native = pd.Series({"integrator": "ida-ggl", "problem": "pendulum",
-                        "options": json.dumps({"driver": "auto"})})
+                        "options": json.dumps({"driver": "auto"}),
+                        "sampling": "every internal step (IDA one-step mode, native driver)"})
+    # An auto run that fell back to the binding takes the binding's ratio: what ran counts.
     binding = native.copy()
-    binding["options"] = json.dumps({"driver": "scikit-sundae"})
+    binding["sampling"] = ("every internal step (IDA one-step mode, scikit-sundae; native "
+                           "driver not built: no C compiler (cc or gcc) on PATH)")
     assert efficiency.ratio(data, native) == (1.1, "pendulum")
     assert efficiency.note(data, native) is None
     assert efficiency.note(data, binding) == \
