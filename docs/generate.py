@@ -322,7 +322,10 @@ def _exudyn(data: dict) -> str:
     lines = [f"`genalpha` against Exudyn {data['exudyn']}'s generalized-alpha solver, same "
              f"model, `rho_inf` and h (medians of {data['rounds']} alternating rounds; load "
              f"{data['load']:.2f}; goal at most {data['goal_ratio_per_step']:g}x Exudyn per "
-             f"step, final states within {data['agreement']:g}).", "",
+             f"step, final states within {data['agreement']:g}). Time per step beyond a "
+             "solve's fixed cost; on `rigid-chain` the final states compared are ours in "
+             "Exudyn's rigid-body equations, and velocities may differ by Exudyn's "
+             "rounding where that is larger.", "",
              "| problem | N | h | status | us per step | Exudyn us per step | x Exudyn per step | "
              "Newton per step | Exudyn Newton per step | final dq | final dv |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -15,7 +15,19 @@ Throughput
     compilation; C around its loop, by its own clocks. Each rate is given per second of wall
     clock and per second of CPU time: on a shared machine the wall clock also counts the
     time the scheduler gives to other processes, the CPU time does not. Each figure is the
-    median over the rounds, each ratio the median of the per-round ratios.
+    median over the rounds, each ratio the median of the per-round ratios, with their
+    quartiles and the ratio of each side's fastest round (the round least slowed by other
+    processes, as :mod:`timeit` reads its repeats).
+
+    Load: each side's share of its wall clock spent waiting for a core is printed (JAX:
+    the run-queue time of this process's threads, Linux ``/proc/self/task/*/schedstat``;
+    C: its wall clock less its CPU time, its loop being one thread that never blocks).
+    A round is short against the swings of the load, so the two sides of one round can
+    meet different loads: on a busy machine the per-round ratios spread widely, hence the
+    many rounds. Where the cores are oversubscribed neither ratio is load-robust: besides
+    the waits, XLA's compiled loops can then take markedly more CPU time per step than on
+    an idle core, for whole runs, while the C loop's CPU time stays as it is; a verdict
+    read at such a load says more about the load than about the code.
 
     The bar: ``rattle`` reaches at least :data:`RATIO_BAR` of the C loop's steps per second
     (wall clock; the CPU-time ratio is printed beside it). The two must also agree: the same
@@ -26,7 +38,8 @@ Throughput
     workers do too), under which XLA compiles the whole time loop into one kernel; the
     report says whether it did. ``--xla-default`` measures without the flag instead. It
     runs with one intra-op thread (XLA's CPU client, BLAS), as the workers do, C being on
-    one core; unlike theirs, its ``XLA_FLAGS`` are only the kernel flag's (or none).
+    one core; unlike theirs, its ``XLA_FLAGS`` lack the thread flag: they are
+    :func:`integrators.loop.xla_options` (with ``--xla-default``, the environment's).
 
 Memory
     ``rattle`` runs ``1e6`` and ``1e7`` steps on sps-receiver, each in a fresh Python
@@ -42,7 +55,7 @@ when something did not run or the implementations disagree, not when a bar is mi
 Usage::
 
     python -m benchmarks.perf.throughput
-    python -m benchmarks.perf.throughput --steps 2e6 --rounds 7 --skip-memory
+    python -m benchmarks.perf.throughput --steps 2e6 --rounds 21 --skip-memory
 """
 
 from __future__ import annotations
@@ -88,6 +101,10 @@ AGREE_RESIDUAL = 1e-14
 #: round-off differences of the state above (measured 9e-6); a change of the method moves
 #: it by O(1).
 AGREE_ENERGY_REL = 1e-3
+
+#: Share of a side's wall clock spent waiting for a core above which the report says that
+#: the cores were oversubscribed: a process that has a core to itself hardly waits for it.
+CONTENDED = 0.1
 
 PROBLEM = "sps-receiver"
 
@@ -146,6 +163,39 @@ def agreement(c: dict, jax_run: dict) -> tuple[bool, str]:
     return ok, text
 
 
+def run_queue_wait(tasks: str = "/proc/self/task") -> float | None:
+    """Seconds this process's threads have spent runnable but waiting for a core (the
+    second field of Linux's ``/proc/self/task/*/schedstat``; ``tasks`` is that folder);
+    ``None`` where it is not given. A thread that ends takes its count with it: a
+    difference of two readings covers the threads alive at both."""
+    total = 0
+    try:
+        names = os.listdir(tasks)
+    except OSError:
+        return None
+    for tid in names:
+        try:
+            with open(os.path.join(tasks, tid, "schedstat")) as f:
+                total += int(f.read().split()[1])
+        except FileNotFoundError:   # a thread that has ended since the listing
+            continue
+        except (OSError, IndexError, ValueError):
+            return None
+    return total * 1e-9
+
+
+def ratio_summary(ours: list[float], theirs: list[float]) -> dict:
+    """The ratio of two series of per-round rates taken side by side: ``median`` of the
+    per-round ratios ``ours[i] / theirs[i]``, their ``quartiles`` (the lower and upper;
+    both the one ratio with a single round) and ``fastest``, the fastest round's rate
+    over the fastest round's."""
+    per_round = [a / b for a, b in zip(ours, theirs, strict=True)]
+    quartiles = (statistics.quantiles(per_round, n=4, method="inclusive")[::2]
+                 if len(per_round) > 1 else per_round * 2)
+    return {"per_round": per_round, "median": statistics.median(per_round),
+            "quartiles": tuple(quartiles), "fastest": max(ours) / max(theirs)}
+
+
 def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) -> bool:
     """The side-by-side timing; returns False if something did not run or disagreed."""
     exe, note, _ = compile_yardstick("rattle_sps", workdir)
@@ -167,11 +217,14 @@ def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) 
             # A slow method gets fewer rounds, but at least one.
             if r > 0 and m["time"] > budget:
                 continue
-            start, cpu = time.perf_counter(), time.process_time()
+            waited, start, cpu = run_queue_wait(), time.perf_counter(), time.process_time()
             traj = m["solve"]()
             elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
+            after = run_queue_wait()
+            waited = None if waited is None or after is None else after - waited
             m["time"] += elapsed
-            m["rates"].append((r, steps / elapsed, steps / cpu))
+            m["rates"].append((r, steps / elapsed, steps / cpu,
+                               None if waited is None else waited / elapsed))
             results[key] = summary(traj)
     load_after = os.getloadavg()[0]
     print(f"\n{steps:.3g} steps of h = {h:g} on {PROBLEM}, {rounds} alternating rounds; "
@@ -199,12 +252,23 @@ def throughput(steps: int, h: float, rounds: int, budget: float, workdir: Path) 
         print("  ratio rattle / C: not measured (no C yardstick)")
         return ok
     ratios = {}
+    timed = methods["rattle"]["rates"]
     for i, clock in ((1, "wall clock"), (2, "CPU time")):
         field = "rate" if i == 1 else "cpu_rate"
-        per_round = [x[i] / c_runs[x[0]][field] for x in methods["rattle"]["rates"]]
-        ratios[clock] = statistics.median(per_round)
-        print(f"  ratio rattle / C by {clock}: {ratios[clock]:.3f} (median of the rounds' "
-              f"{', '.join(f'{x:.3f}' for x in per_round)})")
+        ratio = ratio_summary([x[i] for x in timed], [c_runs[x[0]][field] for x in timed])
+        ratios[clock] = ratio["median"]
+        low, high = ratio["quartiles"]
+        rounds_text = ", ".join(f"{x:.2f}" for x in ratio["per_round"])
+        print(f"  ratio rattle / C by {clock}: {ratio['median']:.3f} (median of "
+              f"{len(timed)} rounds; quartiles {low:.3f} to {high:.3f}; fastest rounds "
+              f"{ratio['fastest']:.3f}; rounds {rounds_text})")
+    c_wait = statistics.median(max(0.0, 1.0 - c["rate"] / c["cpu_rate"]) for c in c_runs)
+    ours = [x[3] for x in timed if x[3] is not None]
+    print(f"  waiting for a core, share of the wall clock (median over the rounds): C "
+          f"{c_wait:.0%}, rattle "
+          + (f"{statistics.median(ours):.0%}" if ours else "not measured (no schedstat)")
+          + ("; the cores were oversubscribed: the ratios above measure the load as much "
+             "as the code" if max([c_wait, *ours]) > CONTENDED else ""))
     held = ratios["wall clock"] >= RATIO_BAR
     print(f"  bar: rattle >= {RATIO_BAR} x C in steps per second (wall clock): "
           f"{'holds' if held else 'NOT met'}"
@@ -276,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
                            description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=float, default=1e6, help="steps per timed run")
     parser.add_argument("--h", type=float, default=1e-3, help="step size")
-    parser.add_argument("--rounds", type=int, default=5, help="alternating rounds")
+    parser.add_argument("--rounds", type=int, default=15, help="alternating rounds")
     parser.add_argument("--budget", type=float, default=60.0,
                         help="seconds of solves per method after which it skips rounds")
     parser.add_argument("--memory-steps", type=float, nargs="+", default=[1e6, 1e7])
@@ -285,6 +349,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--xla-default", action="store_true",
                         help="leave XLA_FLAGS as they are (no one-kernel loop flag)")
     args = parser.parse_args(argv)
+    for name, value in (("--rounds", args.rounds), ("--steps", args.steps)):
+        if not value >= 1:
+            parser.error(f"{name} {value:g} must be at least 1")
     compilation.enable()
     # JAX reads XLA_FLAGS once, when its CPU client starts (at the first computation, not at
     # import): nothing has computed yet.
