@@ -161,6 +161,15 @@ class AlphaMethod(FixedStep):
         ``S_0`` (and of ``P_0``) per step. ``R_M`` and ``R_v`` are the residual's rows
         divided by :func:`velocity_scale`: the equations of motion times ``beta h^2`` and
         the velocity constraint times ``beta h / gamma``, the rows of this matrix.
+
+        The matrix leaves out the geometric stiffness ``sum_k Lambda_k nabla^2 g_k`` of
+        ``G(q_{n+1})^T Lambda``; relative to ``c M`` it is of the size ``beta h^2 omega^2
+        / c``, ``omega`` the frequency that the constraint forces give the fastest motion
+        (a chain's transverse waves, ``omega ~ N``), and each correction leaves about that
+        fraction of the error, a fraction that grows like ``(N h)^2`` on a chain.
+        :func:`integrators.newton.newton`'s Anderson mixing (``anderson``, on in
+        :meth:`step`) removes much of what each correction leaves; the stop is unchanged,
+        and the solution the same to round-off.
         """
         coef = self.coefficients()
         cm = (1 - coef.alpha_m) / (1 - coef.alpha_f)
@@ -224,8 +233,10 @@ class AlphaMethod(FixedStep):
         # conditioning does not grow as h falls; the stop reads the residual as it is.
         w = velocity_scale(self.coefficients(), h)
         rows = (w, 1.0) + ((w,) if FORMULATIONS[self.formulation] else ())
+        # Simplified Newton's matrix leaves out the geometric stiffness (see simplified),
+        # so its contraction is not small on stiff chains: Anderson mixing.
         sol = newton(residual, z0, self.newton_tol, self.newton_max_iter, linear,
-                     rows=rows)
+                     rows=rows, anderson=True)
         it = sol.iterations
         # One force evaluation per residual; the ggl form evaluates G(q_n) once more.
         extra_G = int(FORMULATIONS[self.formulation])

@@ -79,6 +79,24 @@ def max_norm(tree) -> jax.Array:
                                           for a in jax.tree_util.tree_leaves(tree)))
 
 
+def anderson_step(z, r, dz, history):
+    """The correction of :func:`newton`'s ``anderson`` mixing at ``z`` with residual ``r``
+    and simplified-Newton correction ``dz``, and the history for the next iteration.
+
+    ``gamma`` is 0 at the first iteration, and where ``<dr, dr>`` vanishes or the
+    quotient is not finite: the plain correction."""
+    z_old, r_old, dz_old, seen = history
+    leaves = jax.tree_util.tree_leaves
+    dr = [a - b for a, b in zip(leaves(r), leaves(r_old))]
+    num = sum(jnp.vdot(d, a) for d, a in zip(dr, leaves(r)))
+    den = sum(jnp.vdot(d, d) for d in dr)
+    gamma = jnp.where(seen & (den > 0), num / jnp.where(den > 0, den, 1.0), 0.0)
+    gamma = jnp.where(jnp.isfinite(gamma), gamma, 0.0)
+    step = jax.tree_util.tree_map(lambda x, x0, d, d0: d - gamma * ((x - x0) + (d - d0)),
+                                  z, z_old, dz, dz_old)
+    return step, (z, r, dz, jnp.array(True))
+
+
 def dense_linear(residual: Callable[[jax.Array], jax.Array],
                  rows: jax.Array | None = None) -> Linear:
     """Newton's correction with the dense autodiff Jacobian, solved by :func:`solve`;
@@ -129,7 +147,7 @@ def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) ->
 def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
            max_iter: int, linear: Linear | None = None,
            refactor: Callable[[Any], Linear] | None = None,
-           rows: Any | None = None) -> NewtonResult:
+           rows: Any | None = None, anderson: bool = False) -> NewtonResult:
     """Solve ``residual(z) = 0`` by Newton's method.
 
     Iteration: ``z <- z + dz`` with ``dz`` from ``linear`` (default: the exact autodiff
@@ -186,6 +204,17 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
     them before the factorisation. The correction is the same; the stop reads the
     residual as ``residual`` returns it.
 
+    ``anderson`` mixes each simplified-Newton correction with the previous one (Anderson
+    acceleration of depth one; Anderson 1965, J. ACM 12:547-560; Walker and Ni 2011, SIAM
+    J. Numer. Anal. 49:1715-1735): with ``dr = r_k - r_{k-1}`` and ``gamma = <dr, r_k> /
+    <dr, dr>`` (Euclidean over all entries), ``z_{k+1} = z_k + dz_k - gamma (z_k - z_{k-1}
+    + dz_k - dz_{k-1})``, the correction from the combination of the last two iterates
+    whose linearised residual is least. Simplified Newton contracts the error by the
+    spectral radius ``theta`` of ``I - J_0^{-1} J``; where ``theta`` is not small (a
+    stiffness the frozen matrix leaves out), the mixing removes much of the error that one
+    correction leaves. The fixed point, the stop and the fallback are unchanged, so the
+    solution is the same to round-off.
+
     Returns the iterate, whether it converged, the number of iterations (each one
     correction) and the final residual norm.
     """
@@ -211,23 +240,31 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
         # Simplified Newton stops where it no longer halves the residual (docstring).
         return done, (go & (r_norm <= 0.5 * r_prev)) if contracting else go
 
-    def iterate(residual, z, r, it, linear, limit, window, contracting, quick=False):
+    def iterate(residual, z, r, it, linear, limit, window, contracting, quick=False,
+                mixed=False):
         r_norm = max_norm(r)
         done, go = verdict(z, r_norm, jnp.inf, jnp.inf, max_norm(z), it, limit, window,
                            contracting, quick)
+        # The previous iterate, its residual and its correction (``anderson``); none yet.
+        history = ((z, r, jax.tree_util.tree_map(jnp.zeros_like, z), jnp.array(False))
+                   if mixed else ())
 
         def body(state):
-            z, r, r_norm, _, _, it = state
+            z, r, r_norm, _, _, it, history = state
             dz, terms = linear(z, r)
-            z = jax.tree_util.tree_map(jnp.add, z, dz)
+            step = dz
+            if mixed:
+                step, history = anderson_step(z, r, dz, history)
+            z = jax.tree_util.tree_map(jnp.add, z, step)
             r = residual(z)
             r_new = max_norm(r)
             return (z, r, r_new,
-                    *verdict(z, r_new, r_norm, max_norm(dz), terms, it + 1, limit, window,
-                             contracting, quick), it + 1)
+                    *verdict(z, r_new, r_norm, max_norm(step), terms, it + 1, limit, window,
+                             contracting, quick), it + 1, history)
 
-        return jax.lax.while_loop(lambda state: state[4], body,
-                                  (z, r, r_norm, done, go, it))
+        *state, _ = jax.lax.while_loop(lambda state: state[4], body,
+                                       (z, r, r_norm, done, go, it, history))
+        return tuple(state)
 
     def exact_iterate(z, r, it, linear, limit):
         # Newton with the exact Jacobian works on one flat vector (a dense Jacobian, a
@@ -261,7 +298,8 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
     r0 = residual(z0)
     if linear is None:
         return result(exact_iterate(z0, r0, 0, None, max_iter))
-    state = iterate(residual, z0, r0, 0, linear, max_iter, SIMPLIFIED_WINDOW, True)
+    state = iterate(residual, z0, r0, 0, linear, max_iter, SIMPLIFIED_WINDOW, True,
+                    mixed=anderson)
     if _deferred.get():
         return result(state)
 

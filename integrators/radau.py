@@ -28,7 +28,7 @@ from integrators.ida import EXCLUDED, consistent_values, ggl_residual
 from integrators.loop import CACHE_SIZE, put
 from integrators.record import Recorder, batch_length
 from linalg.compiled import compile_lifted
-from linalg.dense import LU, RANK_RTOL, lu_factor, lu_solve, power_of_two_scale, rarely
+from linalg.dense import LU, RANK_RTOL, basic_solve, power_of_two_scale
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -163,12 +163,23 @@ FORMULATIONS: dict[str, Formulation] = {
 }
 
 
+def combine(C, X):
+    """``C @ X`` for coefficients ``C`` (3 x 3, or 3) and the stages ``X`` (3 x N), written
+    as sums of scaled rows: XLA:CPU hands a matrix product of this shape to a library
+    kernel once ``N`` is a few tens, a separate call in every Newton iteration, where the
+    sums fuse with the elementwise work around them."""
+    C = jnp.asarray(C)
+    if C.ndim == 1:
+        return C[0] * X[0] + C[1] * X[1] + C[2] * X[2]
+    return jnp.stack([combine(row, X) for row in C])
+
+
 def stage_residual(R, t, y, h, Z):
     """The collocation equations for the stage increments ``Z`` (3 x N) of a step of size
     ``h`` from ``(t, y)``: ``R(t + c_i h, y + Z_i, K_i)`` with the stage derivatives
     ``K = (A^{-1} Z)/h``, stacked (3 x N)."""
     tab = radau_iia()
-    return jax.vmap(R)(t + jnp.asarray(tab.c) * h, y + Z, (jnp.asarray(tab.A_inv) @ Z) / h)
+    return jax.vmap(R)(t + jnp.asarray(tab.c) * h, y + Z, combine(tab.A_inv, Z) / h)
 
 
 def iteration_blocks(R, t, y, yp):
@@ -263,11 +274,11 @@ UNDERFLOW_ULPS = 16
 CAUSES = (Failure.NONE, Failure.UNDERFLOW, Failure.NEWTON, Failure.NON_FINITE)
 
 
-#: Largest stage system factorised and solved by the unrolled elimination of
-#: :func:`inline_lu_factor` rather than by LAPACK: a library call is opaque to XLA, so each
-#: one costs a call and a copy, which for a few unknowns is most of its price; unrolled,
-#: the elimination is ``N^3/3`` multiply-adds fused into the loop body, and its code grows
-#: like ``N^2``.
+#: Largest stage system factorised by the unrolled elimination of :func:`inline_lu_factor`
+#: rather than by LAPACK (and solved by unrolled substitutions also outside Newton's loop,
+#: :func:`_solve`): a library call is opaque to XLA, so each one costs a call and a copy,
+#: which for a few unknowns is most of its price; unrolled, the elimination is ``N^3/3``
+#: multiply-adds fused into the loop body, and its code grows like ``N^2``.
 INLINE_MAX = 12
 
 
@@ -299,10 +310,9 @@ def looped_basic_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     LAPACK's ``xGEQP3``), then back substitution with the unknowns of columns whose
     ``|R_kk| <= RANK_RTOL |R_00|`` set to zero.
 
-    For the rank-deficient branch of :func:`inline_lu_solve`: a LAPACK call there, though
-    never taken, would cost at every solve (:func:`linalg.dense.rarely`); looped rather
-    than unrolled, its code does not grow with ``N``, and its speed, in a branch that is
-    rarely taken, does not matter."""
+    For the rank-deficient branch of :func:`inline_lu_solve`, so that the small systems'
+    loop is all fused code; looped rather than unrolled, its code does not grow with
+    ``N``, and its speed, in a branch that is rarely taken, does not matter."""
     N = A.shape[0]
     rows = jnp.arange(N)
 
@@ -347,24 +357,65 @@ def inline_lu_solve(F: LU, b: jax.Array) -> jax.Array:
     rb = b * F.row
     x = rb[F.piv]
     for i in range(1, N):
-        x = x.at[i].add(-F.lu[i, :i] @ x[:i])
+        # x_i - l x, not x_i + (-l) x: the same number, but -l would be a loop-invariant
+        # operation that XLA moves out of Newton's loop, one separate kernel per row.
+        x = x.at[i].set(x[i] - F.lu[i, :i] @ x[:i])
     for i in reversed(range(N)):
         x = x.at[i].set((x[i] - F.lu[i, i + 1:] @ x[i + 1:]) / F.lu[i, i])
-    return rarely(F.deficient, looped_basic_solve, x, F.scaled, rb) * F.col
+    return _unless_deficient(F, looped_basic_solve, x, rb)
+
+
+def _unless_deficient(F: LU, basic, x: jax.Array, rb: jax.Array) -> jax.Array:
+    """``x`` (the equilibrated system's solution by the LU factors), or, where ``F`` is rank
+    deficient, ``basic(F.scaled, rb)``: the basic solution (the one rank policy of
+    :mod:`linalg.dense`), unscaled by the column scaling.
+
+    ``lax.cond``, not :func:`linalg.dense.rarely`: the Radau loop is never mapped over
+    lanes, so ``cond`` evaluates only the branch taken, whereas the one-pass loop of
+    ``rarely`` costs at every solve, more than the triangular solves themselves."""
+    return jax.lax.cond(F.deficient, basic, lambda A, b: x, F.scaled, rb) * F.col
+
+
+def lapack_lu_factor(A: jax.Array) -> LU:
+    """:func:`linalg.dense.lu_factor` (LAPACK's LU of the equilibrated ``D_r A D_c``, the
+    same rank test) with ``piv`` the row permutation, as :func:`inline_lu_factor` gives it:
+    a solve inside the loop then applies it directly, where LAPACK's sequence of swaps
+    would be turned into a permutation at every solve."""
+    r = power_of_two_scale(jnp.max(jnp.abs(A), axis=1))
+    c = power_of_two_scale(jnp.max(jnp.abs(A * r[:, None]), axis=0))
+    As = A * r[:, None] * c[None, :]
+    lu, _, perm = jax.lax.linalg.lu(As)
+    pivots = jnp.abs(jnp.diag(lu))
+    deficient = ~(jnp.min(pivots) > RANK_RTOL * jnp.max(pivots))
+    return LU(lu, perm, As, r, c, deficient)
 
 
 def _factor(J, B, h, tab: RadauTableau):
     """LU of the real ``gamma/h B + J`` and of the complex ``(alpha - i beta)/h B + J``
     (unrolled up to :data:`INLINE_MAX` unknowns, else LAPACK's)."""
-    factor = inline_lu_factor if J.shape[0] <= INLINE_MAX else lu_factor
+    factor = inline_lu_factor if J.shape[0] <= INLINE_MAX else lapack_lu_factor
     E1 = factor(tab.gamma / h * B + J)
     E2 = factor(((tab.alpha - 1j * tab.beta) / h) * B + J.astype(jnp.complex128))
     return E1, E2
 
 
-def _solve(F: LU, r: jax.Array) -> jax.Array:
-    """``A^{-1} r`` with a factorisation from :func:`_factor`."""
-    return inline_lu_solve(F, r) if r.shape[0] <= INLINE_MAX else lu_solve(F, r)
+def _solve(F: LU, r: jax.Array, newton: bool = True) -> jax.Array:
+    """``A^{-1} r`` with a factorisation from :func:`_factor`.
+
+    Inside Newton's loop (``newton``) and for small systems, by the unrolled substitutions
+    of :func:`inline_lu_solve`: with no library call in its body, XLA:CPU compiles the
+    Newton loop into one kernel, where each call would otherwise cost a dispatch of its
+    own and split the elementwise work around it into separate kernels. Outside it (the
+    error estimate, in a step attempt that LAPACK's factorisations already split), by
+    LAPACK's triangular solves, two calls where the unrolled substitutions would be ``2N``
+    separate kernels; :func:`linalg.dense.basic_solve` where ``A`` is rank deficient."""
+    if newton or r.shape[0] <= INLINE_MAX:
+        return inline_lu_solve(F, r)
+    rb = r * F.row
+    x = jax.lax.linalg.triangular_solve(F.lu, rb[F.piv][:, None], left_side=True, lower=True,
+                                        unit_diagonal=True)
+    x = jax.lax.linalg.triangular_solve(F.lu, x, left_side=True, lower=False)[:, 0]
+    return _unless_deficient(F, basic_solve, x, rb)
 
 
 def _real_linear(f):
@@ -394,11 +445,11 @@ class DenseStages(NamedTuple):
     def factor(self, frozen, h):
         return _factor(*frozen, h, self.tab)
 
-    def solve_real(self, frozen, factors, h, r):
-        return _solve(factors[0], r)
+    def solve_real(self, frozen, factors, h, r, newton=True):
+        return _solve(factors[0], r, newton)
 
     def solve_complex(self, frozen, factors, h, r):
-        return _solve(factors[1], r)
+        return _solve(factors[1], r, True)
 
     def floor(self, frozen, t, y, w):
         J, B = frozen
@@ -464,7 +515,7 @@ class SchurStages(NamedTuple):
         dmu = P_inv(G(r_q) + r_w - c * r_g)
         return jnp.concatenate([(r_q + dv - GT(dmu)) / c, dv, dlam, dmu])
 
-    def solve_real(self, frozen, factors, h, r):
+    def solve_real(self, frozen, factors, h, r, newton=True):
         return self._solve(frozen, factors, radau_iia().gamma / h, r)
 
     def solve_complex(self, frozen, factors, h, r):
@@ -501,7 +552,7 @@ def _extrapolate(Z, r, c):
     L = jnp.stack([
         jnp.prod(jnp.stack([(theta - x[j]) / (x[k] - x[j]) for j in range(4) if j != k]), 0)
         for k in range(1, 4)], axis=1)
-    return L @ Z - Z[2]
+    return combine(L, Z) - Z[2]
 
 
 @partial(jax.jit, static_argnames=("mech", "formulation", "linear_solver"))
@@ -568,7 +619,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         # stage equations, and the increments are rounding noise (amplified ~1/h in the
         # multipliers, which no scaled test would pass at tight tolerances).
         noise = (k >= 1) & at_floor & (res > 0.5 * res_prev) & held
-        rho = -(T_inv @ Rs)
+        rho = -combine(T_inv, Rs)
         d12 = lin.solve_complex(frozen, factors, h, rho[1] + 1j * rho[2])
         dW = jnp.stack([lin.solve_real(frozen, factors, h, rho[0]), d12.real, d12.imag])
         dyno = jnp.sqrt(jnp.mean((dW / scal) ** 2))
@@ -586,7 +637,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
                                                  & (k_ok == 0))
         slow = (k > 1) & (k < nit) & (k_ok == 0) & (dyth >= 1.0) & ~at_floor
         hhfac = 0.8 * jnp.clip(dyth, 1e-4, 20.0) ** (-1.0 / (4 + nit - 1 - k))
-        Z1 = Z + T @ dW
+        Z1 = Z + combine(T, dW)
         passed = (k_ok == 0) & (faccon * dyno <= p.fnewt)
         # The contraction that decides the Jacobian's reuse is the one measured up to
         # RADAU5's test: the iterations past it run into round-off, where the ratio of
@@ -620,19 +671,20 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         """The embedded error, filtered through the real iteration matrix (stiff
         components damped)."""
         gamma0 = 1.0 / tab.gamma
-        ez = (jnp.asarray(tab.e / gamma0) @ Z) / h
+        ez = combine(tab.e / gamma0, Z) / h
         Bez = jax.jvp(lambda w: R(t, y, w), (zeros,), (ez,))[1]
         scal_e = (atol + p.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))) / h_index
 
         def norm(err):
             return jnp.sqrt(jnp.mean((err / scal_e) ** 2))
 
-        err = lin.solve_real(frozen, factors, h, st.f0 + Bez)
+        err = lin.solve_real(frozen, factors, h, st.f0 + Bez, newton=False)
         # On a first or a retried step a large estimate may be an unresolved stiff
         # component: one more filtering through F at y + err (Hairer and Wanner).
         again = (norm(err) >= 1.0) & (st.first | st.reject)
         err = jax.lax.cond(again, lambda: lin.solve_real(frozen, factors, h,
-                                                         -R(t, y + err, zeros) + Bez),
+                                                         -R(t, y + err, zeros) + Bez,
+                                                         newton=False),
                            lambda: err)
         return jnp.maximum(norm(err), 1e-10), again
 
@@ -683,7 +735,7 @@ def _attempt(st: LoopState, p: Params, mech: Mechanics, formulation: str, nit: i
         return jnp.where(accept, new, old)
 
     state = LoopState(
-        t=pick(t1, t), h=h_next, y=pick(y1, y), w=pick((A_inv[2] @ Z) / h, st.w), f0=f0,
+        t=pick(t1, t), h=h_next, y=pick(y1, y), w=pick(combine(A_inv[2], Z) / h, st.w), f0=f0,
         frozen=frozen, factors=factors, h_lu=h, fresh=fresh & ~accept, need_jac=need_jac,
         Z=pick(Z, st.Z), h_z=pick(h, st.h_z), faccon=faccon,
         h_acc=pick(h, st.h_acc), err_acc=pick(jnp.maximum(1e-2, en), st.err_acc),

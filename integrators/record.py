@@ -246,14 +246,20 @@ class Recorder:
             self.flush()
 
     def extend(self, t: np.ndarray, q: np.ndarray, v: np.ndarray) -> None:
-        """Record a batch of points in time order (any length)."""
-        self.flush()
-        for start in range(0, len(t), self.rows):
-            stop = min(len(t), start + self.rows)
-            k = stop - start
-            self._t[:k], self._q[:k], self._v[:k] = t[start:stop], q[start:stop], v[start:stop]
-            self.count = k
-            self.flush()
+        """Record a batch of points in time order (any length), after the buffered ones:
+        a batch is measured when it is full, whole batches of points each (the compiled
+        measurement costs a full batch however few points it holds)."""
+        start = 0
+        while start < len(t):
+            i = self.count
+            k = min(self.rows - i, len(t) - start)
+            stop = start + k
+            self._t[i:i + k], self._q[i:i + k], self._v[i:i + k] = (t[start:stop],
+                                                                   q[start:stop], v[start:stop])
+            self.count = i + k
+            start = stop
+            if self.count == self.rows:
+                self.flush()
 
     def flush(self) -> None:
         """Measure the buffered points and fold them into the windows and samples."""

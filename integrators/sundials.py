@@ -107,9 +107,12 @@ def compile_library(source: str) -> Path:
     return target
 
 
-def build(residual, neq: int, jacobian: bool):
-    """The library for ``residual(t, y, yp) -> F`` of ``neq`` unknowns, with its autodiff
-    iteration matrix when ``jacobian`` (else IDA forms it by difference quotients)."""
+def functions(residual, neq: int, jacobian: bool) -> str:
+    """C source of the driver's callbacks for ``residual(t, y, yp) -> F`` of ``neq``
+    unknowns: ``res`` and ``jac``, the iteration matrix ``dF/dy + cj dF/dy'`` by
+    forward-mode autodiff (column-major, as SUNDIALS' dense matrices), or an empty ``jac``
+    without ``jacobian`` (IDA then forms it by difference quotients). Raises
+    :class:`NotNative` where the code generator has no C form of the system."""
     import jax
 
     def matrix(t, y, yp, cj):
@@ -124,7 +127,14 @@ def build(residual, neq: int, jacobian: bool):
                      " double *J) {}\n")
     except Unsupported as exc:
         raise NotNative(f"the system's functions have no C form here: {exc}") from None
-    source = "#include <math.h>\n" + "".join(parts) + DRIVER.read_text()
+    return "#include <math.h>\n" + "".join(parts)
+
+
+def build(residual, neq: int, jacobian: bool):
+    """The library for ``residual(t, y, yp) -> F`` of ``neq`` unknowns, with its autodiff
+    iteration matrix when ``jacobian`` (else IDA forms it by difference quotients):
+    :func:`functions` compiled with the driver."""
+    source = functions(residual, neq, jacobian) + DRIVER.read_text()
     path = compile_library(source)
     try:
         return Library(path)

@@ -1,6 +1,8 @@
-"""The C yardstick of ``radau5`` and ``radau5-ggl`` (``radau_pendulum``) takes the steps
-ours take and ends where our runs end, and the Radau loop on the pendulum calls no LAPACK.
-Timing is never asserted here (``python -m benchmarks.perf.efficiency`` measures it)."""
+"""The C yardsticks of ``radau5`` and ``radau5-ggl`` (``radau5``) and of ``ida-ggl`` and
+``ida-index1`` (``ida``) take the steps ours take and end where our runs end, on the pendulum
+and on andrews (configuration-dependent mass, 20 to 26 unknowns: LAPACK's factorisations on
+our side), and the Radau loop on the pendulum calls no LAPACK. Timing is never asserted here
+(``python -m benchmarks.perf.efficiency`` measures it)."""
 
 from __future__ import annotations
 
@@ -12,49 +14,64 @@ import pytest
 import integrators
 import problems
 from benchmarks.perf import efficiency
-from benchmarks.perf.processes import compile_yardstick, state_difference
+from benchmarks.perf.processes import state_difference
 from integrators.base import Grid
 
 needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                               reason="no C compiler (cc or gcc) on PATH")
 
-
-@pytest.fixture(scope="module")
-def radau_pendulum(tmp_path_factory):
-    exes = {}
-    for formulation in ("index3", "ggl"):
-        exe, note, _ = compile_yardstick("radau_pendulum", tmp_path_factory.mktemp(formulation),
-                                         efficiency.radau_flags(formulation))
-        assert exe is not None, note
-        exes[formulation] = exe
-    return exes
+#: Short horizons: the pendulum over 1 s, andrews over a tenth of its Test Set span.
+HORIZONS = {"pendulum": 1.0, "andrews": 0.003}
 
 
 @needs_cc
-@pytest.mark.parametrize("family, thet", [("radau5", None), ("radau5", -1.0),
-                                          ("radau5-ggl", None)])
-def test_radau_yardstick_ends_where_our_run_ends(radau_pendulum, family, thet):
+@pytest.mark.parametrize("problem, family, thet", [
+    ("pendulum", "radau5", None), ("pendulum", "radau5", -1.0), ("pendulum", "radau5-ggl", None),
+    ("andrews", "radau5", None), ("andrews", "radau5-ggl", None)])
+def test_radau_yardstick_ends_where_our_run_ends(tmp_path, problem, family, thet):
     # The same algorithm from the same point: the same accepted and rejected steps,
     # Jacobians and factorisations (a different LU's round-off may move a decision late
-    # in a long run, not in 1 s), and final states far inside the tolerance. thet = -1
-    # (a Jacobian at every step) shows that the options reach the yardstick.
+    # in a long run, not in a short one), and final states far inside the tolerance.
+    # thet = -1 (a Jacobian at every step) shows that the options reach the yardstick.
     rtol = 1e-8
-    case = problems.make("pendulum").with_t_end(1.0)
+    case = problems.make(problem).with_t_end(HORIZONS[problem])
     spec = f"{family}:rtol={rtol!r},atol=1e-10" + ("" if thet is None else f",thet={thet!r}")
     method = integrators.make(spec)
     ours = method.prepare(case, Grid(case.t0, case.t_end))()
+    exe = efficiency.compile_radau(tmp_path, method, case)
     theirs = efficiency.radau_yardstick_run(efficiency.radau_yardstick_command(
-        radau_pendulum[method.formulation], method, case, 1))
+        exe, method, case, 1))
     assert ours.status == "ok"
     steps = theirs["steps"]
+    assert steps >= 20
     assert abs(ours.counts["n_steps"] - steps) <= 0.02 * steps
     for key, c_key in (("n_rejected", "rejected"), ("n_jac_evals", "jacobians")):
         assert abs(ours.counts[key] - theirs[c_key]) <= 0.02 * steps
     assert abs(ours.extra["n_lu"] - theirs["lu"]) <= 0.02 * steps
     if thet is not None:
         assert theirs["jacobians"] >= steps and ours.counts["n_jac_evals"] >= steps
-    dq, dv = state_difference(theirs["y"][:2 * case.mech.n], [*ours.q_final, *ours.v_final])
+    dq, dv = state_difference(theirs["y"][:2 * case.mech.n], [*ours.q_final, *ours.v_final],
+                              relative=True)
     assert max(dq, dv) <= 10 * rtol
+
+
+@needs_cc
+@pytest.mark.parametrize("problem", ["pendulum", "andrews"])
+@pytest.mark.parametrize("family", ["ida-ggl", "ida-index1"])
+def test_ida_yardstick_ends_where_our_run_ends(tmp_path, problem, family):
+    # The native driver and the yardstick make the same IDA calls on the same generated
+    # functions: the same steps and the same final state to round-off.
+    case = problems.make(problem).with_t_end(HORIZONS[problem])
+    method = integrators.make(f"{family}:rtol=1e-8,atol=1e-10,driver=native")
+    ours = method.prepare(case, Grid(case.t0, case.t_end))()
+    exe = efficiency.compile_ida(efficiency.ida_model(tmp_path, case, method.formulation))
+    theirs = efficiency.ida_yardstick_run(efficiency.ida_yardstick_command(exe, method, case, 1))
+    assert ours.status == "ok"
+    assert theirs["steps"] >= 20
+    assert ours.counts["n_steps"] == theirs["steps"]
+    dq, dv = state_difference(theirs["y"][:2 * case.mech.n], [*ours.q_final, *ours.v_final],
+                              relative=True)
+    assert max(dq, dv) <= 1e-12
 
 
 def test_the_pendulums_radau_loop_calls_no_lapack():

@@ -12,7 +12,7 @@ import integrators
 import integrators.loop
 import problems
 from integrators.base import Grid
-from integrators.newton import AT_FLOOR, EPS, newton
+from integrators.newton import AT_FLOOR, EPS, deferred_fallback, max_norm, newton
 from problems.ensemble import draw
 
 
@@ -52,6 +52,36 @@ def test_simplified_newton_does_not_wait_at_the_floor():
         assert traj.linear_solver != "dense"
         assert traj.counts["n_newton"] <= 5.0 * traj.counts["n_steps"]
         assert np.max(traj.windows["pos"]) <= 1e-14
+
+
+def test_anderson_mixing_reaches_the_same_root_in_fewer_simplified_iterations():
+    # (I + K) z + sin(z) / 100 = b with the frozen matrix I: I - J_0^{-1} J has its
+    # eigenvalues spread over [-0.26, 0.01], so simplified Newton contracts slowly (23
+    # corrections from z = b, measured) and mixing each correction with the previous one
+    # removes much of that (17). The fallback is left out, so that each count is simplified
+    # Newton's own.
+    n = 40
+    rng = np.random.default_rng(0)
+    Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    K = jnp.asarray(Q @ np.diag(np.linspace(0.0, 0.25, n)) @ Q.T)
+    b = jnp.asarray(rng.standard_normal(n))
+
+    def residual(z):
+        return (z[0] + K @ z[0] + 0.01 * jnp.sin(z[0]) - b,)
+
+    def linear(z, r):
+        return (-r[0],), 2.0 * max_norm(z)
+
+    sols = []
+    for anderson in (False, True):
+        with deferred_fallback():
+            sols.append(newton(residual, (b,), 1e-16, 60, linear, anderson=anderson))
+    plain, mixed = sols
+    assert bool(plain.converged) and bool(mixed.converged)
+    assert int(mixed.iterations) <= 0.8 * int(plain.iterations), (plain.iterations,
+                                                                  mixed.iterations)
+    assert float(mixed.residual) <= 8 * EPS * (1 + 2 * float(max_norm(mixed.z)))
+    assert np.max(np.abs(mixed.z[0] - plain.z[0])) <= 4 * EPS * np.max(np.abs(plain.z[0]))
 
 
 # Verification runs of large mechanisms (10 to 20 s each, most of it compilation).

@@ -49,21 +49,26 @@ def test_tableau_is_radau_iia():
     assert tab.gamma + 2 * tab.alpha == pytest.approx(np.trace(tab.A_inv), rel=1e-13)
 
 
-def test_transformed_newton_system_is_the_kronecker_system():
+@pytest.mark.parametrize("N, newton", [(5, True), (20, True), (20, False)])
+def test_transformed_newton_system_is_the_kronecker_system(N, newton):
     """One real and one complex solve give the correction of the full 3N x 3N system
-    ``(A^-1/h (x) B + I (x) J) dZ = -R``: the block-diagonalisation is exact."""
+    ``(A^-1/h (x) B + I (x) J) dZ = -R``: the block-diagonalisation is exact, with the
+    unrolled factorisation (N = 5) and with LAPACK's (N = 20, above INLINE_MAX), whose
+    factors are solved by unrolled substitutions in Newton's loop and by LAPACK's
+    triangular solves outside it."""
     tab = radau.radau_iia()
     rng = np.random.default_rng(3)
-    N, h = 5, 0.03
-    J, B = rng.standard_normal((N, N)), np.diag([1.0, 1.0, 2.0, 0.0, 0.0])
+    h = 0.03
+    J = rng.standard_normal((N, N))
+    B = np.diag(np.r_[1.0, 1.0, 2.0, rng.uniform(1, 2, N - 5), 0.0, 0.0])
     R = rng.standard_normal((3, N))
 
     @jax.jit  # compiled once: eagerly every operation would compile on its own
     def transformed(J, B, R):
         E1, E2 = radau._factor(J, B, h, tab)
         rho = -(tab.T_inv @ R)
-        d12 = radau._solve(E2, rho[1] + 1j * rho[2])
-        return tab.T @ jnp.stack([radau._solve(E1, rho[0]), d12.real, d12.imag])
+        d12 = radau._solve(E2, rho[1] + 1j * rho[2], newton)
+        return tab.T @ jnp.stack([radau._solve(E1, rho[0], newton), d12.real, d12.imag])
 
     dZ = np.asarray(transformed(J, B, R))
     full = np.kron(tab.A_inv / h, B) + np.kron(np.eye(3), J)
@@ -96,6 +101,38 @@ def test_inline_lu_solves_as_lapack_does(dtype):
     np.testing.assert_allclose(np.asarray(x), np.linalg.solve(A, b), rtol=1e-10)
     x, x_lapack = both(deficient, b_def)
     assert bool(radau.inline_lu_factor(deficient).deficient)
+    np.testing.assert_allclose(np.asarray(x), np.asarray(x_lapack), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(deficient @ np.asarray(x), b_def, rtol=0,
+                               atol=1e-9 * np.max(np.abs(b_def)))
+
+
+@pytest.mark.parametrize("newton", [True, False])
+@pytest.mark.parametrize("dtype", [np.float64, np.complex128])
+def test_lapack_factors_solve_as_lu_solve_does(dtype, newton):
+    """Above INLINE_MAX the stage systems are LAPACK's LU with its permutation kept, solved
+    by unrolled substitutions in Newton's loop or LAPACK's triangular solves outside it: both
+    give :func:`linalg.dense.lu_solve`'s solution, and its basic solution where the system
+    is rank deficient (the one rank policy)."""
+    rng = np.random.default_rng(7)
+    N = radau.INLINE_MAX + 8
+    A = rng.standard_normal((N, N)) * np.logspace(-8, 8, N)[:, None]
+    if dtype is np.complex128:
+        A = A + 1j * rng.standard_normal((N, N)) * np.logspace(-8, 8, N)[:, None]
+    deficient = A.copy()
+    deficient[3] = 2.0 * deficient[1]
+    b = A @ rng.standard_normal(N)
+    b_def = deficient @ rng.standard_normal(N)
+
+    @jax.jit
+    def both(A, b):
+        F = radau.lapack_lu_factor(A)
+        return radau._solve(F, b, newton), lu_solve(lu_factor(A), b), F.deficient
+
+    x, x_lapack, flagged = both(A, b)
+    assert not bool(flagged)
+    np.testing.assert_allclose(np.asarray(x), np.asarray(x_lapack), rtol=1e-9, atol=0)
+    x, x_lapack, flagged = both(deficient, b_def)
+    assert bool(flagged)
     np.testing.assert_allclose(np.asarray(x), np.asarray(x_lapack), rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(deficient @ np.asarray(x), b_def, rtol=0,
                                atol=1e-9 * np.max(np.abs(b_def)))

@@ -2,13 +2,14 @@
 problem, the headline's note on a cost verdict naming a family over twice its native cost
 per step, and a bad results folder's one line."""
 
+import functools
 import json
 
 import pandas as pd
 import pytest
 
 from benchmarks.store import Store
-from reports import build, efficiency
+from reports import build, efficiency, figures
 from reports.__main__ import main
 from test_report import run
 
@@ -42,6 +43,13 @@ def store(tmp_path_factory):
         for h in (0.1, 0.05):
             st.add(session, run("sps-receiver", "lobatto3ab2", h, t_end=50.0))
     return db
+
+
+@pytest.fixture(autouse=True)
+def draw_here(monkeypatch):
+    """Figures drawn in this process, one at a time: each report built here would otherwise
+    start its own drawing processes, which test_report covers."""
+    monkeypatch.setattr(figures, "Drawing", functools.partial(figures.Drawing, jobs=1))
 
 
 def headline(md: str) -> str:

@@ -1,31 +1,31 @@
-/* Radau IIA (three stages, order 5) on the pendulum (IFToMM A01, L = m = 1, g0 = 9.81),
- * written out by hand: the native cost of `radau5` (index-3 form) and, compiled with -DGGL,
- * of `radau5-ggl` (stabilised index-2 form).
+/* Radau IIA (three stages, order 5) on a mechanical system's index-3 or stabilised index-2
+ * form, written out in C step for step as `radau5` and `radau5-ggl` take it: their native
+ * cost.
  *
- * The residuals of integrators/radau.py's index3_residual, y = (x, z, u, w, lam), and of
- * integrators/ida.py's ggl_residual, y = (x, z, u, w, lam, mu):
- *   index 3: x' - u,  z' - w,  u' + 2 x lam,  w' + g0 + 2 z lam,  x^2 + z^2 - 1;
- *   GGL:     x' - u + 2 x mu,  z' - w + 2 z mu,  u' + 2 x lam,  w' + g0 + 2 z lam,
- *            x^2 + z^2 - 1,  2 (x u + z w);
- * J = dR/dy and B = dR/dy' = diag(1, 1, 1, 1, 0, ...) by hand. The step is the suite's
+ * The system comes in a header, dae_model.h, that the efficiency benchmark generates from
+ * the problem's own JAX functions (linalg/codegen.py): N unknowns y (q, v and the
+ * multipliers; the first NQV are q and v), EXPONENT[i] (the index of y_i minus one), the
+ * residual R(t, y, y') of integrators/radau.py's formulation and its autodiff blocks
+ * J = dR/dy and B = dR/dy' (the singular mass B(y), row-major). The step is the suite's
  * (integrators/radau.py, _attempt) line by line: simplified Newton on the real system
  * gamma/h B + J and the complex one (alpha - i beta)/h B + J, both LU-factorised with
- * power-of-two equilibration and partial pivoting; starting values extrapolated from the
- * last collocation polynomial; RADAU5's test on the scaled increments, up to two more
- * iterations, the constraint at the step end to round-off; Hairer's embedded estimate
- * with the index scaling h^(k-1); the step-size controller with Gustafsson's predictive
- * part; Jacobian reuse while Newton's contraction is at most thet, factorisations kept
- * for step ratios in [1, 1.2]; a Newton failure with a kept Jacobian retried at the same
- * step with a fresh one.
+ * power-of-two equilibration and partial pivoting (the complex pivot by |re| + |im| with
+ * -DLAPACK_PIVOT, as LAPACK's zgetrf takes it for systems above the suite's INLINE_MAX, by
+ * the modulus otherwise); starting values extrapolated from the last collocation
+ * polynomial; RADAU5's test on the scaled increments, up to two more iterations, the
+ * constraint rows at the step end to round-off; Hairer's embedded estimate with the index
+ * scaling h^(k-1) and B at the step's start; the step-size controller with Gustafsson's
+ * predictive part; Jacobian reuse while Newton's contraction is at most thet,
+ * factorisations kept for step ratios in [1, 1.2]; a Newton failure with a kept Jacobian
+ * retried at the same step with a fresh one.
  *
  * The eigenbasis T of A^-1 is a choice of normalisation that the Newton norms depend on,
  * so the tableau comes on the command line from integrators.radau.radau_iia, as do the
  * initial values (the suite's consistent_values): both runs start from the same point
  * with the same coefficients.
  *
- * usage: radau_pendulum RTOL ATOL MULTIPLIER_ATOL THET NEWTON_TOL NIT SAFETY FIRST_STEP
- *        MAX_STEP T_END ROUNDS Y0(N) YP0(N) C(3) A_INV(9) T(9) T_INV(9) GAMMA ALPHA BETA E(3)
- * (N = 5, or 6 with -DGGL)
+ * usage: radau5 RTOL ATOL MULTIPLIER_ATOL THET NEWTON_TOL NIT SAFETY FIRST_STEP MAX_STEP
+ *        T0 T_END ROUNDS Y0(N) YP0(N) C(3) A_INV(9) T(9) T_INV(9) GAMMA ALPHA BETA E(3)
  * (matrices row by row)
  * prints: steps, rejected, jacobians, lu (pairs of factorisations), newton iterations,
  * residual evaluations, linear solves, the best of ROUNDS solve times (wall and processor,
@@ -39,14 +39,8 @@
 #include <string.h>
 #include <time.h>
 
-#define G0 9.81
-/* The stabilised index-2 form with -DGGL, the index-3 form without. NQV: q and v. */
-#ifdef GGL
-#define N 6
-#else
-#define N 5
-#endif
-#define NQV 4
+#include "dae_model.h"
+
 #define EPS DBL_EPSILON
 /* The constants of integrators/radau.py and linalg/dense.py. */
 #define RANK_RTOL 1e-12
@@ -63,53 +57,6 @@ typedef double complex cplx;
 static double C[3], AI[3][3], T[3][3], TI[3][3], GAMMA, ALPHA, BETA, E[3];
 static double RTOL, ATOL, MATOL, THET, NEWTON_TOL, SAFETY, FIRST_STEP, MAX_STEP, FNEWT;
 static int NIT;
-/* The index of each component minus one: the exponent of h in its error weight. */
-#ifdef GGL
-static const double EXPONENT[N] = {0.0, 0.0, 0.0, 0.0, 1.0, 1.0};
-#else
-static const double EXPONENT[N] = {0.0, 0.0, 1.0, 1.0, 2.0};
-#endif
-
-static void residual(const double *y, const double *yp, double *r)
-{
-    const double x = y[0], z = y[1], u = y[2], w = y[3], lam = y[4];
-#ifdef GGL
-    const double mu = y[5];
-    r[0] = yp[0] - u + 2.0 * x * mu;
-    r[1] = yp[1] - w + 2.0 * z * mu;
-    r[5] = 2.0 * (x * u + z * w);
-#else
-    r[0] = yp[0] - u;
-    r[1] = yp[1] - w;
-#endif
-    r[2] = yp[2] + 2.0 * x * lam;
-    r[3] = yp[3] + G0 + 2.0 * z * lam;
-    r[4] = x * x + z * z - 1.0;
-}
-
-/* J = dR/dy, row-major. */
-static void jacobian(const double *y, double J[N][N])
-{
-    memset(J, 0, sizeof(double) * N * N);
-    J[0][2] = -1.0;
-    J[1][3] = -1.0;
-    J[2][0] = 2.0 * y[4];
-    J[2][4] = 2.0 * y[0];
-    J[3][1] = 2.0 * y[4];
-    J[3][4] = 2.0 * y[1];
-    J[4][0] = 2.0 * y[0];
-    J[4][1] = 2.0 * y[1];
-#ifdef GGL
-    J[0][0] = 2.0 * y[5];
-    J[0][5] = 2.0 * y[0];
-    J[1][1] = 2.0 * y[5];
-    J[1][5] = 2.0 * y[1];
-    J[5][0] = 2.0 * y[2];
-    J[5][1] = 2.0 * y[3];
-    J[5][2] = 2.0 * y[0];
-    J[5][3] = 2.0 * y[1];
-#endif
-}
 
 /* 2^-round(log2 x) for x > 0 (1 for 0), as linalg.dense.power_of_two_scale. */
 static double p2scale(double x)
@@ -126,7 +73,7 @@ static double p2scale(double x)
 /* LU with power-of-two equilibration and partial pivoting (first largest modulus), as
  * integrators.radau.inline_lu_factor; piv is the row permutation. Written once for the
  * real system (TYPE double) and once for the complex one. */
-#define DEFINE_LU(LU_T, FACTOR, SOLVE, TYPE, ABS)                                          \
+#define DEFINE_LU(LU_T, FACTOR, SOLVE, TYPE, ABS, PABS)                                        \
     typedef struct {                                                                       \
         TYPE lu[N][N];                                                                     \
         double row[N], col[N];                                                             \
@@ -151,9 +98,9 @@ static double p2scale(double x)
         }                                                                                  \
         for (int k = 0; k < N; k++) {                                                      \
             int p = k;                                                                     \
-            double best = ABS(F->lu[k][k]);                                                \
+            double best = PABS(F->lu[k][k]);                                               \
             for (int i = k + 1; i < N; i++)                                                \
-                if (ABS(F->lu[i][k]) > best) best = ABS(F->lu[p = i][k]);                  \
+                if (PABS(F->lu[i][k]) > best) best = PABS(F->lu[p = i][k]);                \
             if (p != k) {                                                                  \
                 TYPE tmp[N];                                                               \
                 memcpy(tmp, F->lu[k], sizeof tmp);                                         \
@@ -189,8 +136,14 @@ static double p2scale(double x)
         for (int i = 0; i < N; i++) x[i] *= F->col[i];                                     \
     }
 
-DEFINE_LU(LU, lu_factor, solve_real, double, fabs)
-DEFINE_LU(LUc, lu_factor_complex, solve_complex, cplx, cabs)
+#ifdef LAPACK_PIVOT
+static double cabs1(cplx x) { return fabs(creal(x)) + fabs(cimag(x)); }
+#define PIVOT_ABS cabs1
+#else
+#define PIVOT_ABS cabs
+#endif
+DEFINE_LU(LU, lu_factor, solve_real, double, fabs, fabs)
+DEFINE_LU(LUc, lu_factor_complex, solve_complex, cplx, cabs, PIVOT_ABS)
 
 typedef struct {
     LU real;
@@ -198,7 +151,7 @@ typedef struct {
 } Factors;
 
 /* LU of gamma/h B + J and of (alpha - i beta)/h B + J. */
-static int factor(double J[N][N], double h, Factors *F)
+static int factor(double J[N][N], double B[N][N], double h, Factors *F)
 {
     double A1[N][N];
     cplx A2[N][N];
@@ -206,8 +159,8 @@ static int factor(double J[N][N], double h, Factors *F)
     const cplx s2 = (ALPHA - I * BETA) / h;
     for (int i = 0; i < N; i++)
         for (int j = 0; j < N; j++) {
-            A1[i][j] = J[i][j] + (i == j && i < NQV ? s1 : 0.0);
-            A2[i][j] = J[i][j] + (i == j && i < NQV ? s2 : 0.0);
+            A1[i][j] = s1 * B[i][j] + J[i][j];
+            A2[i][j] = s2 * B[i][j] + J[i][j];
         }
     return lu_factor(&F->real, A1) && lu_factor_complex(&F->pair, A2);
 }
@@ -222,7 +175,9 @@ static double rms(const double *x, const double *scal, int n)
 static double clip(double x, double lo, double hi) { return fmin(fmax(x, lo), hi); }
 
 typedef struct {
-    double t, h, y[N], w[N], f0[N], J[N][N], h_lu, Z[3][N], h_z, faccon, h_acc, err_acc;
+    /* J, B: the frozen iteration blocks; Bn: B at (t, y), for the error estimate. */
+    double t, h, y[N], w[N], f0[N], J[N][N], B[N][N], Bn[N][N], h_lu, Z[3][N], h_z, faccon;
+    double h_acc, err_acc;
     Factors F;
     int fresh, need_jac, first, reject;
     long accepted, rejected, f_evals, jac_evals, newton, lin_solves, lu;
@@ -235,10 +190,12 @@ static int init(State *s, double t0, double t_end, const double *y0, const doubl
     s->t = t0;
     memcpy(s->y, y0, sizeof s->y);
     memcpy(s->w, yp0, sizeof s->w);
-    jacobian(s->y, s->J);
+    jacobian(t0, s->y, s->w, &s->J[0][0]);
+    mass(t0, s->y, s->w, &s->B[0][0]);
+    mass(t0, s->y, zero, &s->Bn[0][0]);
     s->h = fmin(fmin(FIRST_STEP, MAX_STEP), t_end - t0);
-    if (!factor(s->J, s->h, &s->F)) return 0;
-    residual(s->y, zero, s->f0);
+    if (!factor(s->J, s->B, s->h, &s->F)) return 0;
+    residual(t0, s->y, zero, s->f0);
     for (int i = 0; i < N; i++) s->f0[i] = -s->f0[i];
     s->h_lu = s->h_z = s->h_acc = s->h;
     s->faccon = 1.0;
@@ -256,9 +213,12 @@ static int attempt(State *s, double t_end)
     const int last = t + 1.0001 * s->h >= t_end;
     const double h = last ? t_end - t : s->h;
     const double t1 = last ? t_end : t + h;
-    if (s->need_jac) jacobian(s->y, s->J);
+    if (s->need_jac) {
+        jacobian(t, s->y, s->w, &s->J[0][0]);
+        mass(t, s->y, s->w, &s->B[0][0]);
+    }
     const int refactor = s->need_jac || h != s->h_lu;
-    if (refactor && !factor(s->J, h, &s->F)) return -1;
+    if (refactor && !factor(s->J, s->B, h, &s->F)) return -1;
     const int fresh = s->fresh || s->need_jac;
     double h_index[N], scal[N], floor_[N];
     for (int i = 0; i < N; i++) {
@@ -285,11 +245,14 @@ static int attempt(State *s, double t_end)
                           - s->Z[2][n];
         }
     }
-    /* Round-off floors: eps (1 + |J||y| + |B||y'|) row by row, J the kept Jacobian. */
+    /* Round-off floors: eps (1 + |J||y| + |B||y'|) row by row, J and B the kept blocks. */
     for (int i = 0; i < N; i++) {
-        floor_[i] = i < NQV ? fabs(s->w[i]) : 0.0;
-        for (int j = 0; j < N; j++) floor_[i] += fabs(s->J[i][j]) * fabs(s->y[j]);
-        floor_[i] = EPS * (1.0 + floor_[i]);
+        double a = 0.0, b = 0.0;
+        for (int j = 0; j < N; j++) {
+            a += fabs(s->J[i][j]) * fabs(s->y[j]);
+            b += fabs(s->B[i][j]) * fabs(s->w[j]);
+        }
+        floor_[i] = EPS * (1.0 + a + b);
     }
     double faccon = pow(fmax(s->faccon, EPS), 0.8);
     int k = 0, k_ok = 0, held = 0, status = 0;
@@ -303,7 +266,7 @@ static int attempt(State *s, double t_end)
                 Y[n] = s->y[n] + Z[i][n];
                 K[n] = (AI[i][0] * Z[0][n] + AI[i][1] * Z[1][n] + AI[i][2] * Z[2][n]) / h;
             }
-            residual(Y, K, Rs[i]);
+            residual(t + C[i] * h, Y, K, Rs[i]);
             for (int n = 0; n < N; n++) res = fmax(res, fabs(Rs[i][n]) / floor_[n]);
         }
         const int at_floor = res <= 1e3;
@@ -348,7 +311,7 @@ static int attempt(State *s, double t_end)
         /* The constraint rows at the step end (t1 does not enter them). */
         double Y1[N], r1[N], con = 0.0, cres1 = 0.0;
         for (int n = 0; n < N; n++) Y1[n] = s->y[n] + Z1[2][n];
-        residual(Y1, zero, r1);
+        residual(t1, Y1, zero, r1);
         for (int n = NQV; n < N; n++) {
             con = fmax(con, fabs(r1[n]));
             cres1 = fmax(cres1, fabs(r1[n]) / floor_[n]);
@@ -374,11 +337,13 @@ static int attempt(State *s, double t_end)
     if (converged) {
         /* The embedded error, filtered through the real iteration matrix. */
         const double gamma0 = 1.0 / GAMMA;
-        double Bez[N], scal_e[N], rhs[N], err[N];
+        double ez[N], Bez[N], scal_e[N], rhs[N], err[N];
+        for (int n = 0; n < N; n++)
+            ez[n] = ((E[0] / gamma0) * Z[0][n] + (E[1] / gamma0) * Z[1][n]
+                     + (E[2] / gamma0) * Z[2][n]) / h;
         for (int n = 0; n < N; n++) {
-            const double ez = ((E[0] / gamma0) * Z[0][n] + (E[1] / gamma0) * Z[1][n]
-                               + (E[2] / gamma0) * Z[2][n]) / h;
-            Bez[n] = n < NQV ? ez : 0.0;
+            Bez[n] = 0.0;
+            for (int j = 0; j < N; j++) Bez[n] += s->Bn[n][j] * ez[j];
             scal_e[n] = ((n < NQV ? ATOL : MATOL) + RTOL * fmax(fabs(s->y[n]), fabs(y1[n])))
                         / h_index[n];
             rhs[n] = s->f0[n] + Bez[n];
@@ -388,7 +353,7 @@ static int attempt(State *s, double t_end)
         if (again) {
             double ye[N], r[N];
             for (int n = 0; n < N; n++) ye[n] = s->y[n] + err[n];
-            residual(ye, zero, r);
+            residual(t, ye, zero, r);
             for (int n = 0; n < N; n++) rhs[n] = -r[n] + Bez[n];
             solve_real(&s->F.real, rhs, err);
         }
@@ -427,8 +392,9 @@ static int attempt(State *s, double t_end)
         memcpy(s->y, y1, sizeof y1);
         for (int n = 0; n < N; n++)
             s->w[n] = (AI[2][0] * Z[0][n] + AI[2][1] * Z[1][n] + AI[2][2] * Z[2][n]) / h;
-        residual(s->y, zero, s->f0);
+        residual(t1, s->y, zero, s->f0);
         for (int n = 0; n < N; n++) s->f0[n] = -s->f0[n];
+        mass(t1, s->y, zero, &s->Bn[0][0]);
         memcpy(s->Z, Z, sizeof Z);
         s->h_z = h;
         s->h_acc = h;
@@ -448,13 +414,13 @@ static double seconds(clockid_t clock)
     return ts.tv_sec + 1e-9 * ts.tv_nsec;
 }
 
-#define N_ARGS (11 + 2 * N + 3 + 27 + 3 + 3)
+#define N_ARGS (12 + 2 * N + 3 + 27 + 3 + 3)
 
 int main(int argc, char **argv)
 {
     if (argc != 1 + N_ARGS) {
         fprintf(stderr, "usage: %s RTOL ATOL MULTIPLIER_ATOL THET NEWTON_TOL NIT SAFETY "
-                        "FIRST_STEP MAX_STEP T_END ROUNDS Y0(%d) YP0(%d) C(3) A_INV(9) T(9) "
+                        "FIRST_STEP MAX_STEP T0 T_END ROUNDS Y0(%d) YP0(%d) C(3) A_INV(9) T(9) "
                         "T_INV(9) GAMMA ALPHA BETA E(3)\n", argv[0], N, N);
         return 2;
     }
@@ -470,9 +436,9 @@ int main(int argc, char **argv)
     }
     RTOL = v[0], ATOL = v[1], MATOL = v[2], THET = v[3], NEWTON_TOL = v[4];
     NIT = (int)v[5], SAFETY = v[6], FIRST_STEP = v[7], MAX_STEP = v[8];
-    const double t_end = v[9];
-    const int rounds = (int)v[10];
-    const double *y0 = v + 11, *yp0 = v + 11 + N, *tab = v + 11 + 2 * N;
+    const double t0 = v[9], t_end = v[10];
+    const int rounds = (int)v[11];
+    const double *y0 = v + 12, *yp0 = v + 12 + N, *tab = v + 12 + 2 * N;
     memcpy(C, tab, sizeof C);
     memcpy(AI, tab + 3, sizeof AI);
     memcpy(T, tab + 12, sizeof T);
@@ -481,9 +447,9 @@ int main(int argc, char **argv)
     memcpy(E, tab + 33, sizeof E);
     /* RADAU5's tolerance of Newton's test, max(10 eps/rtol, min(0.03, rtol^(1/2))). */
     FNEWT = fmax(10 * EPS / RTOL, fmin(0.03, sqrt(RTOL)));
-    if (!(RTOL > 0 && ATOL > 0 && MATOL > 0 && NIT >= 1 && rounds >= 1 && t_end > 0)) {
-        fprintf(stderr, "%s: need RTOL, ATOL, MULTIPLIER_ATOL, T_END > 0 and NIT, ROUNDS >= 1\n",
-                argv[0]);
+    if (!(RTOL > 0 && ATOL > 0 && MATOL > 0 && NIT >= 1 && rounds >= 1 && t_end > t0)) {
+        fprintf(stderr, "%s: need RTOL, ATOL, MULTIPLIER_ATOL > 0, T_END > T0 and NIT, "
+                        "ROUNDS >= 1\n", argv[0]);
         return 2;
     }
     double best = INFINITY, best_cpu = INFINITY;
@@ -491,8 +457,8 @@ int main(int argc, char **argv)
     for (int r = 0; r < rounds; r++) {
         const double start = seconds(CLOCK_MONOTONIC);
         const double cpu = seconds(CLOCK_PROCESS_CPUTIME_ID);
-        if (!init(&s, 0.0, t_end, y0, yp0)) {
-            fprintf(stderr, "rank-deficient stage matrix at t = 0\n");
+        if (!init(&s, t0, t_end, y0, yp0)) {
+            fprintf(stderr, "rank-deficient stage matrix at t = %.17g\n", t0);
             return 1;
         }
         while (s.t < t_end) {
