@@ -82,7 +82,9 @@ class Grid:
         Number of windows over which maxima of ``|g|``, ``|G v + g_t|`` and ``|H - H0|``
         are kept (the drift series).
     n_samples : int
-        Number of states kept, evenly spread over the steps.
+        Number of states kept, evenly spread over the steps. A prepared solve of the
+        fixed-step loop holds buffers of this many ``q`` and ``v`` from one call to the
+        next (:mod:`integrators.loop`); a solve copies back only the rows it uses.
     """
 
     t0: float

@@ -55,6 +55,15 @@ fixed sizes), so one compilation serves every ``h``: :func:`march` keeps the com
 loops of the last :data:`CACHE_SIZE` methods (keyed by the method's options other than
 ``h``, the :class:`Mechanics` object, ``t0`` and the grid's sizes) and a step-size sweep,
 or a run over another horizon, compiles once.
+
+What a solve pays whatever its number of steps is kept to what the run uses. The sample
+buffers (``n_samples`` states of ``q`` and of ``v``, most of the loop's memory for a large
+system) are made once, when the solve is prepared, and handed from each solve to the next
+(donated to the compiled programs, which write into them in place): a solve neither clears
+them nor copies them, and reads back only rows that it wrote. Only the windows and samples
+the plan uses, rounded up to a power of two (:func:`rows_copied`) so that a few small
+programs serve every plan (:func:`handover`), reach the host, in one copy, which is the
+solve's one wait for the device unless a step has to be taken again with the fallback.
 """
 
 from __future__ import annotations
@@ -64,7 +73,7 @@ import math
 import os
 import time
 from collections import OrderedDict
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -219,11 +228,50 @@ def put_lanes(state, qv, sub, sub_qv, pick):
     return (k, lane, carry, code, resid, *rest), (q, v)
 
 
+def sample_buffers(mech: Mechanics, grid: Grid, width: int | None = None
+                   ) -> tuple[jax.ShapeDtypeStruct, jax.ShapeDtypeStruct]:
+    """The shapes of the loop's sample buffers of ``q`` and ``v``: ``grid.n_samples`` rows of
+    ``mech.n`` values, after a leading axis of ``width`` lanes for an ensemble."""
+    lead = () if width is None else (width,)
+    buffer = jax.ShapeDtypeStruct(lead + (grid.n_samples, mech.n), jnp.float64)
+    return buffer, buffer
+
+
+def rows_copied(used: int, size: int) -> int:
+    """Rows of a record of ``size`` rows that reach the host when the plan uses the first
+    ``used``: the next power of two, at most ``size``, so that a few :func:`handover`
+    programs serve every plan."""
+    return min(size, 1 << max(0, used - 1).bit_length())
+
+
+@partial(jax.jit, static_argnames=("n_windows", "n_samples"))
+def handed(lane, code, resid, q, v, wins, samp_q, samp_v, counts, *, n_windows: int,
+           n_samples: int):
+    """The loop's outputs with the first ``n_windows`` rows of its windows and the first
+    ``n_samples`` of its sample buffers (after the lanes' axis, as ``code`` has one)."""
+    def first(a, rows):
+        return jax.lax.slice_in_dim(a, 0, rows, axis=code.ndim)
+    return (lane, code, resid, q, v, first(wins, n_windows), first(samp_q, n_samples),
+            first(samp_v, n_samples), counts)
+
+
+@lru_cache(maxsize=4 * CACHE_SIZE)
+def handover(parts: tuple[jax.ShapeDtypeStruct, ...], n_windows: int, n_samples: int,
+             device: str):
+    """:func:`handed` compiled for arguments of the shapes ``parts`` on ``device`` (the
+    default device, which it is compiled for): a solve's copy to the host is that of the
+    rows the plan uses, not of the grid's whole buffers, in one small program kept for
+    every loop with outputs of these shapes."""
+    return compile_lifted(handed, *parts, n_windows=n_windows, n_samples=n_samples)
+
+
 def _loop(mech: Mechanics, grid: Grid, step: Step,
           observe: Callable[[Any], tuple[jax.Array, jax.Array]], lanes: bool,
           retaken: bool = False) -> tuple[Callable, Callable]:
-    """The loop as two functions: ``begin(carry0) -> (state, E0, I0)``, its state before
-    the first step, and ``run(state, E0, I0, h, N, W, stride) -> (state, (q, v))``, which
+    """The loop as two functions: ``begin(carry0, samp_q, samp_v) -> (state, E0, I0)``,
+    its state before the first step with the sample buffers given (:func:`sample_buffers`;
+    rows other than the first are left as they are), and
+    ``run(state, E0, I0, h, N, W, stride) -> (state, (q, v))``, which
     takes steps of size ``h`` from the state's step ``k`` to ``N`` (or the first failure),
     with maxima over ``W`` windows and a sample every ``stride`` steps (in arrays of the
     grid's sizes, of which the first ``W`` and ``N // stride + 1`` rows are used). The
@@ -303,16 +351,17 @@ def _loop(mech: Mechanics, grid: Grid, step: Step,
         peak = jnp.zeros(code.shape + (3 + n_inv,))
         return jax.lax.while_loop(cond, body, (k, lane, carry, code, resid, peak, counts))
 
-    def begin(carry0):
+    def begin(carry0, samp_q, samp_v):
         # The loop's state before the first step, and the energy and invariants at t0.
+        # The sample buffers are the caller's, as the last solve left them: a run reads
+        # back only rows it wrote, so they are not cleared. The windows are, since a
+        # segment folds its maxima into its window's.
         q0, v0 = see(carry0)
         tz = jnp.asarray(t0, dtype=jnp.float64)
         E0, I0 = lift(mech.energy)(q0, v0), lift(mech.invariant_values)(q0, v0)
         shape, axis = E0.shape, E0.ndim
         first = measure(tz, q0, v0, E0, I0)
         wins = jnp.zeros(shape + (grid.n_windows, 3 + n_inv))
-        samp_q = jnp.zeros(shape + (grid.n_samples, mech.n))
-        samp_v = jnp.zeros(shape + (grid.n_samples, mech.n))
         wins, samp_q, samp_v = (put(a, 0, row, axis)
                                 for a, row in ((wins, first), (samp_q, q0), (samp_v, v0)))
         state = (jnp.asarray(0, jnp.int64), jnp.zeros(shape, jnp.int64), carry0,
@@ -398,8 +447,9 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     Returns
     -------
     solve : callable
-        ``solve() -> Trajectory`` (with ``lanes``, a list of them, one per lane); its
-        attribute ``compiled`` is the compiled loop (for diagnostics such as whether XLA
+        ``solve() -> Trajectory`` (with ``lanes``, a list of them, one per lane), which
+        holds the grid's sample buffers from one call to the next (module notes; one call
+        at a time); its attribute ``compiled`` is the compiled loop (for diagnostics such as whether XLA
         made it one kernel), its large constants passed as arguments
         (:mod:`linalg.compiled`), and ``late_setup_s`` the seconds its calls have spent
         compiling the loop with the fallback (set-up, not solving: the harness moves them).
@@ -408,23 +458,27 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     # t_end is not in the loop (N is an argument): other horizons share it. A loop is
     # compiled for the device it runs on (jax.default_device), which the key holds too.
     width = jax.tree_util.tree_leaves(carry0)[0].shape[0] if lanes else None
+    device = str(jax.config.jax_default_device)
     cache_key = None if key is None else (key, mech, grid.t0, grid.n_windows, grid.n_samples,
-                                          width, str(jax.config.jax_default_device))
+                                          width, device)
     args = (jnp.float64(plan.h), jnp.int64(plan.n_steps), jnp.int64(plan.n_windows),
             jnp.int64(plan.stride))
 
     def compiled_loop(fallback: bool, width: int | None = width):
-        # (begin, run), compiled or from the cache; an ensemble's for `width` lanes.
+        # (begin, run, the shape of run's state), compiled or from the cache; an
+        # ensemble's for `width` lanes. Both hand their state on: the solve does not read
+        # the arrays it gives them again, and so no sample buffer is copied.
         tag = None if cache_key is None else (cache_key, fallback, width)
         loop = _LOOPS.get(tag) if tag is not None else None
         if loop is None:
             begin, run = _loop(mech, grid, step, observe, lanes, retaken=not fallback)
             carry = carry0 if width is None else jax.tree_util.tree_map(
                 lambda a: jax.ShapeDtypeStruct((width,) + a.shape[1:], a.dtype), carry0)
-            first = compile_lifted(begin, carry)
-            state, E0, I0 = jax.eval_shape(begin, carry)
+            buffers = sample_buffers(mech, grid, width)
+            first = compile_lifted(begin, carry, *buffers, donate=(1, 2))
+            state, E0, I0 = jax.eval_shape(begin, carry, *buffers)
             with deferred_fallback() if not fallback else contextlib.nullcontext():
-                loop = (first, compile_lifted(run, state, E0, I0, *args))
+                loop = (first, compile_lifted(run, state, E0, I0, *args, donate=(0,)), state)
             if tag is not None:
                 _LOOPS[tag] = loop
                 while len(_LOOPS) > CACHE_SIZE:
@@ -437,9 +491,19 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     # dense path's loop is the same with or without it. Decided here, not by the trace,
     # since a loop kept on disk is loaded untraced (linalg.compiled).
     deferred = linear_solver != "dense"
-    begin, run = compiled_loop(fallback=not deferred)
+    begin, run, shape = compiled_loop(fallback=not deferred)
     names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
+    # The rows the plan uses, and only those (to the next power of two), reach the host.
+    _, lane, _, code, resid, wins, samp_q, samp_v, counts = shape
+    final = jax.ShapeDtypeStruct(lane.shape + (mech.n,), jnp.float64)
+    hand = handover((lane, code, resid, final, final, wins, samp_q, samp_v, counts),
+                    rows_copied(plan.n_windows, grid.n_windows),
+                    rows_copied(plan.n_samples, grid.n_samples), device)
+    # The sample buffers, made here and handed from one solve to the next (begin). A solve
+    # that raised has lost them, and the next makes new ones.
+    blank = sample_buffers(mech, grid, width)
+    spare = [tuple(jnp.zeros(b.shape, b.dtype) for b in blank)]
 
     def exact_loop(w=None):
         # The loop with the fallback, its compilation counted as set-up.
@@ -460,40 +524,49 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             sub_state = jax.eval_shape(take_lanes, state, E0, I0, pick)[0]
             sub_qv = jax.tree_util.tree_map(
                 lambda a: jax.ShapeDtypeStruct((w,) + a.shape[1:], a.dtype), qv)
-            scatter = jax.jit(put_lanes).lower(state, qv, sub_state, sub_qv, pick).compile()
+            scatter = jax.jit(put_lanes, donate_argnums=(0, 1)).lower(
+                state, qv, sub_state, sub_qv, pick).compile()
             solve.late_setup_s += time.perf_counter() - start
             pair = (gather, scatter)
             if tag is not None:
                 _LOOPS[tag] = pair
         return pair
 
-    def retake(state, qv, E0, I0):
+    def retake(state, qv, E0, I0, codes):
         # A step failed without the fallback: the loop with it takes that step again,
-        # from the state before it.
+        # from the state before it. `codes`: the lanes' failure codes, on the host.
         _, lane, carry, code, resid, *rest = state
         if not lanes:
-            return exact_loop()[1]((lane, lane, carry, jnp.zeros_like(code),
+            # The step count is handed over twice: as the loop's and as the lane's.
+            return exact_loop()[1]((jnp.copy(lane), lane, carry, jnp.zeros_like(code),
                                     jnp.zeros_like(resid), *rest), E0, I0, *args)
         # The lanes that failed go on from the steps they failed at, together, with the
         # fallback (one more compiled loop, of a power-of-two width so that few widths
         # are compiled; padded with repeats of the first, which compute alike and write
         # alike), and their results replace theirs: only the steps from each lane's
         # failure on are taken again.
-        failed = np.flatnonzero(np.asarray(code))
+        failed = np.flatnonzero(codes)
         w = 1 << int(len(failed) - 1).bit_length()
         pick = jnp.asarray(np.concatenate([failed, np.full(w - len(failed), failed[0])]))
         loop = exact_loop(w)[1]
         gather, scatter = regroup(w, state, qv, E0, I0, pick)
         return scatter(state, qv, *loop(*gather(state, E0, I0, pick), *args), pick)
 
-    def solve():
-        state, E0, I0 = begin(carry0)
-        state, (q, v) = run(state, E0, I0, *args)
-        if deferred and np.any(np.asarray(state[3]) != 0):
-            state, (q, v) = retake(state, (q, v), E0, I0)
+    def fetch(state, qv):
+        # The run's outputs on the host: the one synchronisation of a solve that does not
+        # fail.
         _, lane, _, code, resid, wins, samp_q, samp_v, counts = state
-        out = jax.device_get(jax.block_until_ready(
-            (lane, code, resid, q, v, wins, samp_q, samp_v, counts)))
+        return jax.device_get(hand(lane, code, resid, *qv, wins, samp_q, samp_v, counts))
+
+    def solve():
+        buffers = spare.pop() if spare else tuple(jnp.zeros(b.shape, b.dtype) for b in blank)
+        state, E0, I0 = begin(carry0, *buffers)
+        state, qv = run(state, E0, I0, *args)
+        out = fetch(state, qv)
+        if deferred and np.any(out[1] != 0):
+            state, qv = retake(state, qv, E0, I0, out[1])
+            out = fetch(state, qv)
+        spare.append(state[6:8])
         assert out[3].dtype == np.float64, "the loop must run in float64"
         if not lanes:
             return trajectory(plan, grid.t0, names, *out, **solver)
@@ -507,8 +580,9 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
 
 def trajectory(plan: Plan, t0: float, names: list[str], k, code, resid, q, v, wins, samp_q,
                samp_v, counts, **solver) -> Trajectory:
-    """The :class:`Trajectory` of one run of the loop from its outputs (host arrays):
-    the windows and samples it reached, its counters, and its failure if it had one."""
+    """The :class:`Trajectory` of one run of the loop from its outputs (host arrays, of
+    which ``wins``, ``samp_q`` and ``samp_v`` hold at least the rows the plan uses): the
+    windows and samples it reached, its counters, and its failure if it had one."""
     k, code = int(k), int(code)
     wins = wins[:plan.n_windows]
     t_final = t0 + k * plan.h

@@ -334,7 +334,8 @@ def _calls_back(jaxpr) -> bool:
     return False
 
 
-def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
+def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
+                   **static: Any) -> Lifted:
     """``jax.jit(fn).lower(*args, **static).compile()`` with the constants of at least
     :data:`LIFT_BYTES` passed as arguments (module notes); inside :func:`keeping`, the
     program kept by an earlier process is loaded instead, or this one kept.
@@ -346,6 +347,10 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
         arguments, by name).
     *args
         Arrays (or shape-dtype structures) of the call's shapes.
+    donate : tuple of int
+        Positions in ``args`` whose arrays the program may reuse for its results
+        (``jax.jit``'s ``donate_argnums``): a caller that hands them over spares the copy
+        of a large buffer it would not read again.
     """
     keeper = _keeper.get()
     path = keeper.path(fn, args, static) if keeper is not None else None
@@ -384,7 +389,10 @@ def compile_lifted(fn: Callable, *args: Any, **static: Any) -> Lifted:
         return jax.core.eval_jaxpr(jaxpr, bound, *flat)
 
     flat_args = jax.tree_util.tree_leaves(args)
-    lowered = jax.jit(run).lower(values, *flat_args)
+    # The flat arguments follow the lifted constants (argument 0 of run).
+    given = [i in donate for i, arg in enumerate(args) for _ in jax.tree_util.tree_leaves(arg)]
+    lowered = jax.jit(run, donate_argnums=tuple(1 + i for i, d in enumerate(given) if d)
+                      ).lower(values, *flat_args)
     _read.serialized = None
     compiled = lowered.compile()
     give_back_heap()

@@ -62,17 +62,15 @@ at ``N = 1024`` and ``4096``), while its ``q`` moves by 1e-12. Agreement is ther
 Times. Exudyn's is that of its steps (``SolveSteps``), without its set-up; ours that of a
 prepared solve in this process as a worker solves
 (:func:`benchmarks.perf.processes.like_a_worker`), which also records what the suite's
-grid asks for: its buffers of ``n_samples`` states (``integrators.base.Grid``) are
-filled and handed back whole by every solve, whatever its number of steps, and on a
-4096-body chain they are most of a 100-step solve. Such per-solve costs are no cost of a
-step, so the time per step of each is the marginal one, ``(t_S - t_1) / (S - 1)`` from a
-solve of ``S`` steps and one of a single step; the whole solves' ratio is given too. Rounds
-alternate between the two so that a change in the machine's load hits both; each takes the
-fastest of ``--best-of`` solves of each kind (a solve of a few milliseconds is otherwise
-at the mercy of the machine's load); figures
-are medians over the rounds (of the per-round differences for the marginal times), with
-the ratio of processor times as well (less disturbed by load than wall time), and the
-1-minute load is printed.
+grid asks for (``integrators.base.Grid``: the windows and samples a solve hands back,
+the rows its steps use). Such per-solve costs are no cost of a step, so the time per
+step of each is the marginal one, ``(t_S - t_1) / (S - 1)`` from a solve of ``S`` steps
+and one of a single step; the whole solves' ratio is given too. Rounds alternate between
+the two so that a change in the machine's load hits both; each takes the fastest of
+``--best-of`` solves of each kind (a solve of a few milliseconds is otherwise at the mercy
+of the machine's load); figures are medians over the rounds (of the per-round differences
+for the marginal times), with the ratio of processor times as well (less disturbed by
+load than wall time), and the 1-minute load is printed.
 
 Per problem and ``N``: marginal time per step of each, their ratio (the bar: at most 1),
 the ratio of processor times per step and of whole solves, Newton iterations per step of
