@@ -90,8 +90,9 @@ def section(doc: Document, data: dict) -> None:
         f"load average {data['load']:.2f} at the start. Ratio per step: our wall time per "
         f"step over the yardstick's (per solve: whole solves; CPU: processor time, which a "
         f"loaded machine disturbs less, where measured); the benchmark's goal is at most "
-        f"{fmt(data['goal_ratio_per_step'])} for each family's own driver ({BINDING}, IDA "
-        f"through Python callbacks, is shown beside it and held to no goal)."))
+        f"{fmt(data['goal_ratio_per_step'])} for each family's own driver"
+        + (f" ({BINDING}, IDA through Python callbacks, is shown beside it and held to no "
+           f"goal)." if any(r["driver"] == BINDING for r in data["rows"]) else ".")))
     rows = sorted(data["rows"], key=lambda r: (r["family"], r["problem"], r["driver"]))
     doc.add(Table(
         ["family", "driver", "problem", "setting", "ratio per step", "CPU ratio per step",
