@@ -1,11 +1,25 @@
-"""Shared helpers of the problem tests: one run, its error against the reference, and the
-receiver ring state built from the reduced model's radii."""
+"""Shared helpers of the tests: one run, its error against the reference, the receiver
+ring state built from the reduced model's radii, and the yardstick tests' marker and row
+keys."""
+
+import shutil
 
 import numpy as np
+import pytest
 
 import integrators
 import problems
 from integrators import Grid
+
+#: Skips a test that compiles a C yardstick where no C compiler is on ``PATH``.
+needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                              reason="no C compiler (cc or gcc) on PATH")
+
+#: The keys of the ``ida`` comparison's rows, which every comparison's rows carry.
+IDA_KEYS = {"family", "driver", "problem", "yardstick", "t_end", "rtol", "atol", "steps",
+            "yardstick_steps", "us_per_step", "yardstick_us_per_step", "ratio_per_step",
+            "ratio_per_solve", "steps_ratio", "final_q_difference", "final_v_difference",
+            "multipliers"}
 
 
 def solve(spec, key, t_end=None, **options):

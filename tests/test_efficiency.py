@@ -6,8 +6,6 @@ Timing is never asserted here (``python -m benchmarks.perf.efficiency`` measures
 
 from __future__ import annotations
 
-import shutil
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,9 +18,7 @@ from benchmarks.perf.processes import compile_yardstick
 from integrators import baumgarte
 from integrators.base import Grid
 from linalg import dense
-
-needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                              reason="no C compiler (cc or gcc) on PATH")
+from helpers import needs_cc
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ Timing is never asserted here (``python -m benchmarks.perf.efficiency`` measures
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 
 import numpy as np
@@ -17,15 +16,7 @@ import pytest
 import integrators
 import problems
 from benchmarks.perf import efficiency
-
-needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                              reason="no C compiler (cc or gcc) on PATH")
-
-#: The keys of the ``ida`` comparison's rows, which every comparison's rows carry.
-IDA_KEYS = {"family", "driver", "problem", "yardstick", "t_end", "rtol", "atol", "steps",
-            "yardstick_steps", "us_per_step", "yardstick_us_per_step", "ratio_per_step",
-            "ratio_per_solve", "steps_ratio", "final_q_difference", "final_v_difference",
-            "multipliers"}
+from helpers import IDA_KEYS, needs_cc
 
 
 @pytest.fixture(scope="module")

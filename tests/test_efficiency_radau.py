@@ -6,8 +6,6 @@ our side), and the Radau loop on the pendulum calls no LAPACK. Timing is never a
 
 from __future__ import annotations
 
-import shutil
-
 import jax.numpy as jnp
 import pytest
 
@@ -16,9 +14,8 @@ import problems
 from benchmarks.perf import efficiency
 from benchmarks.perf.processes import state_difference
 from integrators.base import Grid
+from helpers import needs_cc
 
-needs_cc = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                              reason="no C compiler (cc or gcc) on PATH")
 
 #: Short horizons: the pendulum over 1 s, andrews over a tenth of its Test Set span.
 HORIZONS = {"pendulum": 1.0, "andrews": 0.003}

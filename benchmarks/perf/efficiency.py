@@ -217,15 +217,23 @@ def ida_yardstick_command(exe: Path, method, case, rounds: int) -> list[str]:
     return [str(exe), *map(repr, map(float, numbers))]
 
 
-def ida_yardstick_run(command: list[str]) -> dict:
-    """Run ``ida``: its steps, best solve times and final ``y``."""
+def yardstick_run(command: list[str], counts: tuple[str, ...] = ("steps",)) -> dict:
+    """Run a yardstick, ``command`` (its executable first): the integer ``counts`` it
+    prints, its best solve times (``seconds``, ``cpu_seconds``) and final ``y``, each on a
+    line of its own led by its name. A yardstick that fails raises, with its stderr."""
     ending, out, err, _ = run_process(command, 600.0, env=None)
     if ending:
-        raise RuntimeError(f"ida: {ending}: {err.strip()}")
+        raise RuntimeError(f"{' '.join(command[:2])}: {ending}: {err.strip()}")
     fields = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
-    return {"steps": int(fields["steps"][0]), "seconds": float(fields["seconds"][0]),
+    return {**{key: int(fields[key][0]) for key in counts},
+            "seconds": float(fields["seconds"][0]),
             "cpu_seconds": float(fields["cpu_seconds"][0]),
             "y": [float(x) for x in fields["y"]]}
+
+
+def ida_yardstick_run(command: list[str]) -> dict:
+    """Run ``ida``: its steps, best solve times and final ``y``."""
+    return yardstick_run(command)
 
 
 def compile_ida(folder: Path) -> Path:
@@ -299,14 +307,7 @@ def _baumgarte_yardstick(exe: Path, problem: str, method: str, setting: list[str
     command = [str(exe), problem, method, repr(method_options.alpha),
                repr(method_options.beta), repr(case.t_end), "3", *setting,
                *map(repr, map(float, case.q0)), *map(repr, map(float, case.v0))]
-    ending, out, err, _ = run_process(command, 600.0, env=None)
-    if ending:
-        raise RuntimeError(f"{exe.name} {problem} {method}: {ending}: {err.strip()}")
-    fields = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
-    return {"steps": int(fields["steps"][0]), "rejected": int(fields["rejected"][0]),
-            "seconds": float(fields["seconds"][0]),
-            "cpu_seconds": float(fields["cpu_seconds"][0]),
-            "y": [float(x) for x in fields["y"]]}
+    return yardstick_run(command, ("steps", "rejected"))
 
 
 def baumgarte(args, workdir: Path) -> list[dict]:
@@ -436,15 +437,8 @@ def radau_yardstick_command(exe: Path, method, case, rounds: int) -> list[str]:
 
 def radau_yardstick_run(command: list[str]) -> dict:
     """Run ``radau5``: its counts, best solve time and final ``y``."""
-    ending, out, err, _ = run_process(command, 600.0, env=None)
-    if ending:
-        raise RuntimeError(f"radau5: {ending}: {err.strip()}")
-    fields = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
-    counts = {key: int(fields[key][0]) for key in ("steps", "rejected", "jacobians", "lu",
-                                                   "newton", "f_evals", "lin_solves")}
-    return {**counts, "seconds": float(fields["seconds"][0]),
-            "cpu_seconds": float(fields["cpu_seconds"][0]),
-            "y": [float(x) for x in fields["y"]]}
+    return yardstick_run(command, ("steps", "rejected", "jacobians", "lu", "newton",
+                                   "f_evals", "lin_solves"))
 
 
 def radau(args, workdir: Path) -> list[dict]:
@@ -498,14 +492,7 @@ def _spark_yardstick(exe: Path, problem: str, n_steps: int, h: float, method, ca
     command = [str(exe), problem, str(n_steps), repr(h), repr(method.newton_tol),
                str(method.newton_max_iter), "3", *map(repr, map(float, case.q0)),
                *map(repr, map(float, case.v0))]
-    ending, out, err, _ = run_process(command, 600.0, env=None)
-    if ending:
-        raise RuntimeError(f"{exe.name} {problem}: {ending}: {err.strip()}")
-    fields = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
-    return {"steps": int(fields["steps"][0]), "newton": int(fields["newton"][0]),
-            "seconds": float(fields["seconds"][0]),
-            "cpu_seconds": float(fields["cpu_seconds"][0]),
-            "y": [float(x) for x in fields["y"]]}
+    return yardstick_run(command, ("steps", "newton"))
 
 
 def spark(args, workdir: Path) -> list[dict]:
@@ -644,14 +631,7 @@ def dense_yardstick_run(command: list[str]) -> dict:
     """Run ``dense_andrews``: its steps, Newton iterations (all; the steps on which Newton
     with the exact Jacobian took over, and its BiCGSTAB iterations), best solve times and
     final state."""
-    ending, out, err, _ = run_process(command, 600.0, env=None)
-    if ending:
-        raise RuntimeError(f"dense_andrews {command[1]}: {ending}: {err.strip()}")
-    fields = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line.strip()}
-    counts = {key: int(fields[key][0]) for key in ("steps", "newton", "exact_steps", "krylov")}
-    return {**counts, "seconds": float(fields["seconds"][0]),
-            "cpu_seconds": float(fields["cpu_seconds"][0]),
-            "y": [float(x) for x in fields["y"]]}
+    return yardstick_run(command, ("steps", "newton", "exact_steps", "krylov"))
 
 
 def compile_dense(workdir: Path) -> Path:
