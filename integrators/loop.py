@@ -503,7 +503,16 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
     # The sample buffers, made here and handed from one solve to the next (begin). A solve
     # that raised has lost them, and the next makes new ones.
     blank = sample_buffers(mech, grid, width)
-    spare = [tuple(jnp.zeros(b.shape, b.dtype) for b in blank)]
+    home = jax.config.jax_default_device or jax.devices()[0]
+    if isinstance(home, str):  # a platform's name
+        home = jax.devices(home)[0]
+
+    def fresh():
+        # New buffers on the device the loop is compiled for (the default one now), even
+        # when a later solve is called under another default device.
+        return tuple(jax.device_put(jnp.zeros(b.shape, b.dtype), home) for b in blank)
+
+    spare = [fresh()]
 
     def exact_loop(w=None):
         # The loop with the fallback, its compilation counted as set-up.
@@ -559,7 +568,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         return jax.device_get(hand(lane, code, resid, *qv, wins, samp_q, samp_v, counts))
 
     def solve():
-        buffers = spare.pop() if spare else tuple(jnp.zeros(b.shape, b.dtype) for b in blank)
+        buffers = spare.pop() if spare else fresh()
         state, E0, I0 = begin(carry0, *buffers)
         state, qv = run(state, E0, I0, *args)
         out = fetch(state, qv)

@@ -30,6 +30,27 @@ def same(a, b):
             np.testing.assert_array_equal(x[key], y[key], strict=True)
 
 
+def poison(solve) -> None:
+    """Fill the sample buffers that ``solve`` (a prepared solve, or a function that calls
+    one) hands to its next call with NaN: a solve that read a row it did not write would
+    carry the NaN into its records."""
+    seen, todo = set(), [solve]
+    while todo:
+        fn = todo.pop()
+        if id(fn) in seen or not callable(fn):
+            continue
+        seen.add(id(fn))
+        code, cells = getattr(fn, "__code__", None), getattr(fn, "__closure__", None) or ()
+        for name, cell in zip(code.co_freevars if code else (), cells):
+            value = cell.cell_contents
+            if name == "spare":
+                value[:] = [tuple(jnp.full(b.shape, jnp.nan, b.dtype) for b in buffers)
+                            for buffers in value]
+                return
+            todo.append(value)
+    raise AssertionError("no sample buffers found in the solve's closure")
+
+
 @pytest.fixture
 def handed(monkeypatch):
     """The shapes of the arrays of each ``jax.device_get`` call, in call order."""
@@ -67,7 +88,9 @@ def test_a_solve_copies_the_rows_its_plan_uses_and_the_values_of_a_grid_of_those
         solve, exact = (method.prepare(case, grid) for grid in grids)
     reference = exact()
     handed.clear()
-    first, again = solve(), solve()
+    first = solve()
+    poison(solve)
+    again = solve()
     assert len(handed) == 2  # one copy to the host per solve
     n, columns = case.mech.n, len((reference[0] if lanes else reference).windows) - 1
     lead = (lanes,) if lanes else ()
@@ -78,7 +101,7 @@ def test_a_solve_copies_the_rows_its_plan_uses_and_the_values_of_a_grid_of_those
         assert one.status == "ok" and one.counts["n_steps"] == 10
         assert len(one.samples["t"]) == 11 and len(one.windows["t"]) == 10
         same(one, reference)
-        same(two, reference)  # the buffers handed on from the first solve change nothing
+        same(two, reference)  # buffers handed on full of NaN change nothing
 
 
 @pytest.mark.parametrize("lanes", [False, True])
@@ -108,7 +131,9 @@ def test_a_run_retaken_with_the_fallback_keeps_its_records(lanes, handed):
                       for failing, solver in ((True, "banded"), (False, "dense")))
     reference = plain()
     handed.clear()
-    runs, twice = retaken(), retaken()
+    runs = retaken()
+    poison(retaken)
+    twice = retaken()
     assert retaken.late_setup_s > 0  # the loop with the fallback ran
     assert len(handed) == 4  # the first loop's copy, then the retaken loop's, per solve
     for shapes in handed:
@@ -119,3 +144,34 @@ def test_a_run_retaken_with_the_fallback_keeps_its_records(lanes, handed):
         assert one.status == "ok" and one.counts["n_steps"] == 10
         same(one, ref)
         same(two, ref)
+
+
+@pytest.mark.parametrize("lanes", [False, True])
+def test_a_run_that_fails_midway_records_only_what_it_reached(lanes):
+    # Lane 1 fails at its fourth step with and without the fallback: its records end
+    # there, and stay so when the buffers it is handed are full of NaN.
+    case = problems.make("pendulum").with_t_end(1.0)
+    q0s, v0s = draw(case, 3, seed=0)
+
+    def step(carry, t, h):
+        q, v, lane = carry
+        fails = (lane == 1) & (jnp.round((t - case.t0) / h) == 3)
+        return ((q + h * v, v, lane), jnp.where(fails, Failure.NEWTON, Failure.NONE),
+                jnp.asarray(0.0), {"n_newton": jnp.asarray(1)})
+
+    carry0 = ((jnp.asarray(q0s), jnp.asarray(v0s), jnp.arange(3)) if lanes else
+              (jnp.asarray(q0s[1]), jnp.asarray(v0s[1]), jnp.asarray(1)))
+    solve = march(case.mech, Grid(case.t0, case.t_end), 0.1, carry0, step,
+                  lambda carry: carry[:2], linear_solver="banded", lanes=lanes)
+    first = solve()
+    poison(solve)
+    again = solve()
+    if not lanes:
+        first, again = [first], [again]
+    failed = first[1 if lanes else 0]
+    assert failed.status == "failed" and failed.counts["n_steps"] == 3
+    for one, two in zip(first, again):
+        same(one, two)
+        for record in (two.windows, two.samples):
+            assert all(np.isfinite(np.asarray(a)).all() for a in record.values())
+

@@ -17,8 +17,8 @@ Yardsticks so far:
 
 ``ida``
     SUNDIALS IDA called from C on the GGL and index-1 forms of ``pendulum`` (``--t-end``)
-    and ``andrews`` (``--andrews-t-end``, 0.1 s by default: the Test Set's 0.03 s is a few
-    milliseconds of solving), for ``ida-ggl`` and ``ida-index1``: the residual and
+    and ``andrews`` (``--andrews-t-end``, 0.1 s by default: the Test Set's 0.03 s is too
+    short a solve to time against the machine's noise), for ``ida-ggl`` and ``ida-index1``: the residual and
     iteration matrix that the suite's native driver compiles (:func:`ida_model`, one
     source of the physics), set up by that driver's own C (:mod:`integrators.sundials`).
     The rows add the ratio of processor times; the steps must be the native driver's
@@ -93,8 +93,9 @@ from benchmarks.records import CommandParser
 
 #: The bar: our time per step over the yardstick's.
 RATIO_GOAL = 3.0
-#: The bar on IDA's steps over the yardstick's: both drivers make the same calls, and only
-#: round-off in the residuals (C against XLA's code) may move a step-size decision.
+#: The bar on the ratio of IDA's steps to the yardstick's, either way: both drivers make the
+#: same calls, and only round-off in the residuals (C against XLA's code) may move a
+#: step-size decision.
 IDA_STEPS_GOAL = 1.15
 
 
@@ -754,7 +755,8 @@ def main(argv=None) -> int:
     # The goal holds for each family's own driver, not for the scikit-sundae binding.
     native = [r for r in rows if r["driver"] != "scikit-sundae"]
     met = all(r["ratio_per_step"] <= RATIO_GOAL
-              and r.get("steps_goal", math.inf) >= r["steps_ratio"] for r in native)
+              and r.get("steps_goal", math.inf) >= max(r["steps_ratio"], 1 / r["steps_ratio"])
+              for r in native)
     return 0 if met else 1
 
 

@@ -67,8 +67,8 @@ the rows its steps use). Such per-solve costs are no cost of a step, so the time
 step of each is the marginal one, ``(t_S - t_1) / (S - 1)`` from a solve of ``S`` steps
 and one of a single step; the whole solves' ratio is given too. Rounds alternate between
 the two so that a change in the machine's load hits both; each takes the fastest of
-``--best-of`` solves of each kind (a solve of a few milliseconds is otherwise at the mercy
-of the machine's load); figures are medians over the rounds (of the per-round differences
+``--best-of`` solves of each kind (a short solve is otherwise at the mercy of the
+machine's load); figures are medians over the rounds (of the per-round differences
 for the marginal times), with the ratio of processor times as well (less disturbed by
 load than wall time), and the 1-minute load is printed.
 
