@@ -259,7 +259,7 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
             r = residual(z)
             r_new = max_norm(r)
             return (z, r, r_new,
-                    *verdict(z, r_new, r_norm, max_norm(step), terms, it + 1, limit, window,
+                    *verdict(z, r_new, r_norm, max_norm(dz), terms, it + 1, limit, window,
                              contracting, quick), it + 1, history)
 
         *state, _ = jax.lax.while_loop(lambda state: state[4], body,
