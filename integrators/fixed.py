@@ -70,7 +70,8 @@ class FixedStep(Integrator):
         A method that runs Newton on its whole stage system names its own: none for SPARK
         and the generalized-alpha members, one separable constraint for RATTLE. On the
         dense path that Newton has the exact autodiff Jacobian, ``K`` forward derivatives
-        and an ``O(K^3)`` LU for ``K`` unknowns at every iteration, through LAPACK, which
+        and an ``O(K^3)`` LU for ``K`` unknowns at every iteration (once per step from
+        :data:`integrators.newton.FROZEN_MIN` unknowns on), through LAPACK, which
         keeps XLA from compiling the time loop into one kernel; the structured path's
         simplified Newton takes two to five times the iterations, each ``O(n)`` and inside
         the one kernel. One trajectory at a time the structured path is the faster on

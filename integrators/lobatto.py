@@ -51,7 +51,8 @@ class LobattoIIIAIIIB(FixedStep):
     ends them.
 
     The dense path (``linear_solver = "dense"``, or a mass that no structured solver
-    takes) uses the exact autodiff Jacobian of the whole stage system. The structured
+    takes) uses the exact autodiff Jacobian of the whole stage system, formed once per step
+    from :data:`integrators.newton.FROZEN_MIN` unknowns on. The structured
     ones (:mod:`linalg`; chosen by default wherever the mass allows, even for one
     constraint: :meth:`integrators.fixed.FixedStep.dense_max`) use simplified Newton
     with the Jacobian frozen at ``(q_0, p_0)``, without the force Jacobian and the

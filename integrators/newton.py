@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from linalg.dense import rarely, solve
+from linalg.dense import rarely, reused_factor, reused_solve, solve
 from linalg.krylov import bicgstab
 
 #: Relative residual at which a Krylov solve of the fallback's Newton correction stops
@@ -30,6 +30,13 @@ EXACT_WINDOW = 1e3
 
 #: The same for simplified Newton (:func:`newton`).
 SIMPLIFIED_WINDOW = 8.0
+
+#: Unknowns from which Newton without an approximate Jacobian (the dense path) first
+#: iterates with the exact Jacobian at the start, factorised once (:func:`frozen_linear`).
+#: Below it a Jacobian and factorisation per iteration cost less than the extra
+#: corrections of a linear rate (``python -m benchmarks.perf.crossover`` times the dense
+#: path).
+FROZEN_MIN = 24
 
 #: Multiple of the round-off floor within which a residual that the last iteration
 #: contracted by at least :data:`QUADRATIC` counts as at the floor: Newton stops there at
@@ -114,6 +121,31 @@ def dense_linear(residual: Callable[[jax.Array], jax.Array],
     return linear
 
 
+def frozen_linear(residual: Callable[[Any], Any], z0: Any, rows: Any | None = None) -> Linear:
+    """Simplified Newton's correction with the exact Jacobian at ``z0``, factorised once
+    (:func:`linalg.dense.reused_factor`, rows equilibrated by ``rows`` as in
+    :func:`dense_linear`) and applied to every residual: one Jacobian and one factorisation
+    per solve in place of one per iteration. ``terms`` is ``max_i sum_j |J_0,ij| |z_j|``."""
+    x0, unravel = ravel_pytree(z0)
+    r0, _ = ravel_pytree(residual(z0))
+
+    def flat(x):
+        return ravel_pytree(residual(unravel(x)))[0]
+
+    J = jax.jacfwd(flat)(x0)
+    weights = None if rows is None else ravel_pytree(jax.tree_util.tree_map(
+        lambda w, a: jnp.broadcast_to(w, jnp.shape(a)), rows, residual(z0)))[0]
+    F = reused_factor(J if weights is None else J / weights[:, None])
+    size = jnp.abs(J)
+
+    def linear(z, r):
+        x, rx = ravel_pytree(z)[0], ravel_pytree(r)[0]
+        dx = reused_solve(F, -(rx if weights is None else rx / weights))
+        return unravel(dx), jnp.max(size @ jnp.abs(x))
+
+    return linear
+
+
 def krylov_linear(residual: Callable[[jax.Array], jax.Array], linear: Linear) -> Linear:
     """Newton's correction with the exact Jacobian, matrix-free, preconditioned by ``linear``.
 
@@ -150,9 +182,15 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
            rows: Any | None = None, anderson: bool = False) -> NewtonResult:
     """Solve ``residual(z) = 0`` by Newton's method.
 
-    Iteration: ``z <- z + dz`` with ``dz`` from ``linear`` (default: the exact autodiff
-    Jacobian, dense, :func:`dense_linear`). A structured method passes an approximate,
-    once-factorised Jacobian instead (simplified Newton, linear convergence).
+    Iteration: ``z <- z + dz`` with ``dz`` from ``linear``. A structured method passes an
+    approximate, once-factorised Jacobian (simplified Newton, linear convergence). Without
+    one, the Jacobian is the exact autodiff one, dense: for fewer than :data:`FROZEN_MIN`
+    unknowns formed and factorised at every iteration (:func:`dense_linear`); from
+    :data:`FROZEN_MIN` on, formed at ``z0`` and factorised once (:func:`frozen_linear`),
+    since ``K`` forward derivatives and an ``O(K^3)`` factorisation per iteration cost more
+    than the extra corrections of a linear rate, with the per-iteration Jacobian as the
+    fallback below (simplified Newton with the exact Jacobian at the start: Hairer and
+    Wanner, *Solving ODEs II*, IV.8).
 
     Stopping rule: converged when ``||residual(z)||_inf <= tol`` (on the residual, so that
     ``tol`` bounds the constraint violation left), or when no iteration can gain more:
@@ -185,7 +223,8 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
 
     Fallback: where simplified Newton does not converge (it stalls above the window,
     diverges, meets a non-finite residual or uses its ``max_iter`` corrections), Newton
-    with the exact Jacobian (:func:`krylov_linear`) takes over for up to ``max_iter`` more
+    with the exact Jacobian (:func:`krylov_linear`; the dense :func:`dense_linear` after
+    :func:`frozen_linear`) takes over for up to ``max_iter`` more
     from the better of ``z0`` and the last finite iterate, preconditioned by ``refactor(z)``
     where given (the approximate Jacobian factorised afresh: the frozen one may be nearly
     singular) and by ``linear`` otherwise. The structured path is thus as robust as the
@@ -296,8 +335,11 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
         return NewtonResult(z, done & finite, it, r_norm)
 
     r0 = residual(z0)
-    if linear is None:
+    dense = linear is None
+    if dense and ravel_pytree(z0)[0].size < FROZEN_MIN:
         return result(exact_iterate(z0, r0, 0, None, max_iter))
+    if dense:
+        linear = frozen_linear(residual, z0, rows)
     state = iterate(residual, z0, r0, 0, linear, max_iter, SIMPLIFIED_WINDOW, True,
                     mixed=anderson)
     if _deferred.get():
@@ -312,7 +354,7 @@ def newton(residual: Callable[[Any], Any], z0: Any, tol: float,
             return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), new, old)
 
         z = pick(z, z0)
-        precondition = linear if refactor is None else refactor(z)
+        precondition = None if dense else linear if refactor is None else refactor(z)
         return exact_iterate(z, pick(r, r0), it, precondition, it + max_iter)
 
     simplified = result(state).converged

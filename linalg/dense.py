@@ -49,24 +49,44 @@ def power_of_two_scale(x: jax.Array) -> jax.Array:
     return jnp.where(x > 0, scale, 1.0)
 
 
-def basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Array:
-    """A basic solution of ``A x = b`` by QR with column pivoting, for rank-deficient ``A``.
+class Basic(NamedTuple):
+    """QR with column pivoting, ``A P = Q R``, for basic solutions (:func:`basic_factor`):
+    ``R`` with the rows of dependent columns replaced by the identity's, ``keep`` the
+    independent ones."""
 
-    ``A P = Q R`` with ``|R_kk|`` non-increasing; columns whose ``|R_kk|`` falls below
-    ``rtol |R_00|`` are numerically dependent and their unknowns are set to zero, the
-    leading triangle gives the others. For a consistent system this is an exact solution
-    (not the minimum-norm one); ``b`` may be a vector or a matrix of columns, ``A`` real
-    or complex.
-    """
-    if A.shape[0] == A.shape[1] <= SMALL_DENSE and not jnp.iscomplexobj(A):
-        return small_basic_solve(A, b, rtol)
+    Q: jax.Array
+    R: jax.Array
+    perm: jax.Array
+    keep: jax.Array
+
+
+def basic_factor(A: jax.Array, rtol: float = RANK_RTOL) -> Basic:
+    """``A``'s factorisation for :func:`basic_apply`: ``A P = Q R`` with ``|R_kk|``
+    non-increasing; columns whose ``|R_kk|`` falls below ``rtol |R_00|`` are numerically
+    dependent."""
     Q, R, perm = jax.scipy.linalg.qr(A, pivoting=True)
     d = jnp.abs(jnp.diag(R))
     keep = d > rtol * d[0]
-    mask = keep[:, None] if b.ndim == 2 else keep
-    R = jnp.where(keep[:, None], R, jnp.eye(A.shape[0]))
-    y = jax.scipy.linalg.solve_triangular(R, jnp.where(mask, Q.conj().T @ b, 0.0))
-    return jnp.zeros_like(y).at[perm].set(y)
+    return Basic(Q, jnp.where(keep[:, None], R, jnp.eye(A.shape[0])), perm, keep)
+
+
+def basic_apply(B: Basic, b: jax.Array) -> jax.Array:
+    """The basic solution of ``A x = b`` from ``A``'s :func:`basic_factor`: the dependent
+    columns' unknowns are zero, the leading triangle gives the others."""
+    mask = B.keep[:, None] if b.ndim == 2 else B.keep
+    y = jax.scipy.linalg.solve_triangular(B.R, jnp.where(mask, B.Q.conj().T @ b, 0.0))
+    return jnp.zeros_like(y).at[B.perm].set(y)
+
+
+def basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Array:
+    """A basic solution of ``A x = b`` by QR with column pivoting, for rank-deficient ``A``
+    (:func:`basic_factor`, :func:`basic_apply`). For a consistent system this is an exact
+    solution (not the minimum-norm one); ``b`` may be a vector or a matrix of columns,
+    ``A`` real or complex.
+    """
+    if A.shape[0] == A.shape[1] <= SMALL_DENSE and not jnp.iscomplexobj(A):
+        return small_basic_solve(A, b, rtol)
+    return basic_apply(basic_factor(A, rtol), b)
 
 
 def small_basic_solve(A: jax.Array, b: jax.Array, rtol: float = RANK_RTOL) -> jax.Array:
@@ -150,6 +170,34 @@ def solve(A: jax.Array, b: jax.Array) -> jax.Array:
     if A.shape[0] == 1:
         return b / A[0, 0]
     return lu_solve(lu_factor(A), b)
+
+
+class Reused(NamedTuple):
+    """A factorisation for many solves with one matrix (:func:`reused_factor`)."""
+
+    lu: LU
+    #: :func:`basic_factor` of the equilibrated matrix where it is rank deficient (zeros
+    #: elsewhere).
+    basic: Basic
+
+
+def reused_factor(A: jax.Array) -> Reused:
+    """:func:`lu_factor` of ``A`` and, where it is rank deficient, the QR of the basic
+    solution as well, once: :func:`reused_solve` then costs substitutions only, where
+    :func:`lu_solve` would redo the QR at every solve with a deficient ``A``."""
+    F = lu_factor(A)
+    blank = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
+                                   jax.eval_shape(basic_factor, F.scaled))
+    return Reused(F, rarely(F.deficient, basic_factor, blank, F.scaled))
+
+
+def reused_solve(F: Reused, b: jax.Array) -> jax.Array:
+    """``A^{-1} b`` (the basic solution if ``A`` is rank deficient) for ``A`` factorised
+    by :func:`reused_factor`."""
+    rb = b * F.lu.row
+    y = rarely(F.lu.deficient, basic_apply,
+               jax.scipy.linalg.lu_solve((F.lu.lu, F.lu.piv), rb), F.basic, rb)
+    return y * F.lu.col
 
 
 def rarely(pred: jax.Array, fn: Callable[..., Any], otherwise: Any, *operands: Any) -> Any:

@@ -12,7 +12,10 @@ import integrators
 import integrators.loop
 import problems
 from integrators.base import Grid
-from integrators.newton import AT_FLOOR, EPS, deferred_fallback, max_norm, newton
+import integrators.newton as newton_module
+from integrators.newton import (AT_FLOOR, EPS, FROZEN_MIN, deferred_fallback, max_norm,
+                                newton)
+from linalg.dense import lu_factor, lu_solve, reused_factor, reused_solve
 from problems.ensemble import draw
 
 
@@ -52,6 +55,47 @@ def test_simplified_newton_does_not_wait_at_the_floor():
         assert traj.linear_solver != "dense"
         assert traj.counts["n_newton"] <= 5.0 * traj.counts["n_steps"]
         assert np.max(traj.windows["pos"]) <= 1e-14
+
+
+def test_a_reused_factorisation_solves_as_a_fresh_one_full_rank_or_deficient():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((20, 20))
+    deficient = A.copy()
+    deficient[7] = deficient[3]  # a redundant equation
+    for M in (A, deficient):
+        b = M @ rng.standard_normal(20)  # consistent
+        F = reused_factor(jnp.asarray(M))
+        assert bool(F.lu.deficient) == (M is deficient)
+        x = np.asarray(reused_solve(F, jnp.asarray(b)))
+        np.testing.assert_allclose(x, np.asarray(lu_solve(lu_factor(jnp.asarray(M)),
+                                                          jnp.asarray(b))), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(M @ x, b, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("redundant", [False, True])
+def test_dense_newton_on_many_unknowns_reuses_its_jacobian_and_reaches_the_same_root(
+        redundant, monkeypatch):
+    # 30 unknowns: Newton without an approximate Jacobian first iterates with the one at
+    # the start, factorised once; it contracts linearly (more corrections than the exact
+    # Newton's quadratic ones) to the same root. A redundant equation (row 7 repeats row
+    # 3) makes every Jacobian rank deficient: the basic solutions of both agree.
+    rng = np.random.default_rng(1)
+    A = jnp.asarray(np.eye(30) * 4 + rng.standard_normal((30, 30)) * 0.3)
+    b = jnp.asarray(rng.standard_normal(30))
+
+    def residual(z):
+        r = A @ z + 0.5 * jnp.sin(z) - b
+        return r.at[7].set(r[3]) if redundant else r
+
+    z0 = jnp.zeros(30)
+    assert z0.size >= FROZEN_MIN
+    frozen = newton(residual, z0, 1e-16, 100)
+    monkeypatch.setattr(newton_module, "FROZEN_MIN", 10 ** 9)
+    exact = newton(residual, z0, 1e-16, 100)
+    assert bool(frozen.converged) and bool(exact.converged)
+    assert int(frozen.iterations) > int(exact.iterations)  # linear, not quadratic
+    assert float(max_norm(residual(frozen.z))) <= 1e-14
+    np.testing.assert_allclose(np.asarray(frozen.z), np.asarray(exact.z), rtol=0, atol=1e-13)
 
 
 def test_anderson_mixing_reaches_the_same_root_in_fewer_simplified_iterations():
