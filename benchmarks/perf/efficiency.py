@@ -153,6 +153,28 @@ def dae_model(folder: Path, case, multiplier_blocks: int, body: str) -> Path:
     return folder
 
 
+def compared(ours: list, theirs: list[dict], y, relative: bool = False) -> dict:
+    """The columns every comparison's row has, from its rounds: ``ours`` holds a
+    ``(trajectory, wall seconds, CPU seconds)`` per round, ``theirs`` the yardstick's
+    outputs (:func:`yardstick_run`), ``y`` the yardstick's final ``(q, v)``. Times are
+    medians over the rounds; steps and the final state are the first round's
+    (:func:`benchmarks.perf.processes.state_difference`, ``relative`` passed on)."""
+    traj = ours[0][0]
+    wall = statistics.median(w for _, w, _ in ours)
+    # Processor time too: on a loaded machine it is disturbed less than wall time.
+    cpu = statistics.median(c for _, _, c in ours)
+    c_wall = statistics.median(r["seconds"] for r in theirs)
+    c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
+    steps, c_steps = traj.counts["n_steps"], theirs[0]["steps"]
+    dq, dv = state_difference(y, [*traj.q_final, *traj.v_final], relative=relative)
+    return {"steps": steps, "yardstick_steps": c_steps, "us_per_step": 1e6 * wall / steps,
+            "yardstick_us_per_step": 1e6 * c_wall / c_steps,
+            "ratio_per_step": (wall / steps) / (c_wall / c_steps),
+            "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
+            "final_q_difference": dq, "final_v_difference": dv,
+            "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps)}
+
+
 def record_seconds(case, traj, rounds: int) -> float:
     """The drift record's share of a solve of ``traj``'s steps on ``case``: the best of
     ``rounds`` times of a :class:`integrators.record.Recorder` fed as many points (the
@@ -277,27 +299,14 @@ def ida(args, workdir: Path) -> list[dict]:
                         raise RuntimeError(f"ida-{form} ({d}) on {problem}: {traj.message}")
                     ours[d].append((traj, wall, cpu))
                 theirs.append(ida_yardstick_run(command))
-            c_steps = theirs[0]["steps"]
-            c_wall = statistics.median(r["seconds"] for r in theirs)
-            c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
-            c_state = theirs[0]["y"][:2 * case.mech.n]
             for d in drivers:
                 traj = ours[d][0][0]
-                wall = statistics.median(w for _, w, _ in ours[d])
-                cpu = statistics.median(c for _, _, c in ours[d])
-                steps = traj.counts["n_steps"]
-                dq, dv = state_difference(c_state, [*traj.q_final, *traj.v_final])
                 rows.append(with_note({
                     "family": f"ida-{form}", "driver": d, "problem": problem,
                     "yardstick": "ida (C, SUNDIALS IDA)", "t_end": case.t_end,
-                    "rtol": args.rtol, "atol": args.atol, "steps": steps,
-                    "yardstick_steps": c_steps, "us_per_step": 1e6 * wall / steps,
-                    "yardstick_us_per_step": 1e6 * c_wall / c_steps,
-                    "ratio_per_step": (wall / steps) / (c_wall / c_steps),
-                    "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
-                    "final_q_difference": dq, "final_v_difference": dv,
+                    "rtol": args.rtol, "atol": args.atol,
+                    **compared(ours[d], theirs, theirs[0]["y"][:2 * case.mech.n]),
                     "multipliers": FORMULATIONS[form].multiplier_blocks * case.mech.m,
-                    "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps),
                     "steps_goal": IDA_STEPS_GOAL if d == "native" else None},
                     record_seconds(case, traj, args.rounds)))
     return rows
@@ -346,25 +355,13 @@ def baumgarte(args, workdir: Path) -> list[dict]:
                 theirs.append(_baumgarte_yardstick(exe, problem, setting[0], setting[1:],
                                                    case, method))
             traj = ours[0][0]
-            wall = statistics.median(w for _, w, _ in ours)
-            # Processor time too: on a loaded machine it is disturbed less than wall time.
-            cpu = statistics.median(c for _, _, c in ours)
-            c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
-            steps, c_steps = traj.counts["n_steps"], theirs[0]["steps"]
-            c_wall = statistics.median(r["seconds"] for r in theirs)
-            dq, dv = state_difference(theirs[0]["y"], [*traj.q_final, *traj.v_final])
             rows.append({
                 "family": family, "driver": "jax", "problem": problem,
                 "yardstick": "baumgarte_rk (C)", "t_end": args.t_end,
                 "rtol": args.rtol if "dopri5" in family else None,
-                "atol": args.atol if "dopri5" in family else None, "steps": steps,
-                "yardstick_steps": c_steps, "us_per_step": 1e6 * wall / steps,
-                "yardstick_us_per_step": 1e6 * c_wall / c_steps,
-                "ratio_per_step": (wall / steps) / (c_wall / c_steps),
-                "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
-                "final_q_difference": dq, "final_v_difference": dv,
+                "atol": args.atol if "dopri5" in family else None,
+                **compared(ours, theirs, theirs[0]["y"]),
                 "multipliers": case.mech.m, "setting": shown,
-                "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps),
                 "rejected": traj.counts["n_rejected"],
                 "yardstick_rejected": theirs[0]["rejected"]})
     return rows
@@ -466,23 +463,11 @@ def _radau_row(args, workdir: Path, family: str, problem: str) -> dict:
         ours.append((traj, wall, cpu))
         theirs.append(radau_yardstick_run(command))
     traj = ours[0][0]
-    wall = statistics.median(w for _, w, _ in ours)
-    c_wall = statistics.median(r["seconds"] for r in theirs)
-    # Processor time too: on a loaded machine it is disturbed less than wall time.
-    cpu = statistics.median(c for _, _, c in ours)
-    c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
-    steps, c_steps = traj.counts["n_steps"], theirs[0]["steps"]
-    n = case.mech.n
-    dq, dv = state_difference(theirs[0]["y"][:2 * n], [*traj.q_final, *traj.v_final])
     return with_note({
         "family": family, "driver": "jax", "problem": problem,
         "yardstick": "radau5 (C)", "t_end": case.t_end, "rtol": args.rtol,
-        "atol": args.atol, "steps": steps, "yardstick_steps": c_steps,
-        "us_per_step": 1e6 * wall / steps, "yardstick_us_per_step": 1e6 * c_wall / c_steps,
-        "ratio_per_step": (wall / steps) / (c_wall / c_steps),
-        "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
-        "final_q_difference": dq, "final_v_difference": dv, "multipliers": case.mech.m,
-        "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps),
+        "atol": args.atol, **compared(ours, theirs, theirs[0]["y"][:2 * case.mech.n]),
+        "multipliers": case.mech.m,
         "rejected": traj.counts["n_rejected"], "yardstick_rejected": theirs[0]["rejected"],
         "jac_evals": traj.counts["n_jac_evals"], "yardstick_jac_evals": theirs[0]["jacobians"],
         "lu": traj.extra["n_lu"], "yardstick_lu": theirs[0]["lu"]},
@@ -525,23 +510,11 @@ def spark(args, workdir: Path) -> list[dict]:
             ours.append((traj, min(s[1] for s in solves), min(s[2] for s in solves)))
             theirs.append(_spark_yardstick(exe, problem, plan.n_steps, plan.h, method, case))
         traj = ours[0][0]
-        wall = statistics.median(w for _, w, _ in ours)
-        cpu = statistics.median(c for _, _, c in ours)
-        c_wall = statistics.median(r["seconds"] for r in theirs)
-        c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
-        steps, c_steps = traj.counts["n_steps"], theirs[0]["steps"]
-        dq, dv = state_difference(theirs[0]["y"], [*traj.q_final, *traj.v_final])
         rows.append({
             "family": "lobatto3ab3", "driver": "jax", "problem": problem,
             "yardstick": "spark_lobatto3ab3 (C)", "t_end": args.t_end, "rtol": None,
-            "atol": None, "steps": steps, "yardstick_steps": c_steps,
-            "us_per_step": 1e6 * wall / steps,
-            "yardstick_us_per_step": 1e6 * c_wall / c_steps,
-            "ratio_per_step": (wall / steps) / (c_wall / c_steps),
-            "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
-            "final_q_difference": dq, "final_v_difference": dv,
+            "atol": None, **compared(ours, theirs, theirs[0]["y"]),
             "multipliers": case.mech.m, "setting": f"h={plan.h:g}", "h": plan.h,
-            "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps),
             "newton": traj.counts["n_newton"], "yardstick_newton": theirs[0]["newton"]})
     return rows
 
@@ -672,24 +645,11 @@ def dense(args, workdir: Path) -> list[dict]:
             ours.append((traj, min(s[1] for s in solves), min(s[2] for s in solves)))
             theirs.append(dense_yardstick_run(command))
         traj = ours[0][0]
-        wall = statistics.median(w for _, w, _ in ours)
-        cpu = statistics.median(c for _, _, c in ours)
-        c_wall = statistics.median(r["seconds"] for r in theirs)
-        c_cpu = statistics.median(r["cpu_seconds"] for r in theirs)
-        steps, c_steps = traj.counts["n_steps"], theirs[0]["steps"]
-        dq, dv = state_difference(theirs[0]["y"], [*traj.q_final, *traj.v_final],
-                                  relative=True)
         rows.append({
             "family": family, "driver": "jax", "problem": "andrews",
             "yardstick": "dense_andrews (C)", "t_end": case.t_end, "rtol": None,
-            "atol": None, "steps": steps, "yardstick_steps": c_steps,
-            "us_per_step": 1e6 * wall / steps,
-            "yardstick_us_per_step": 1e6 * c_wall / c_steps,
-            "ratio_per_step": (wall / steps) / (c_wall / c_steps),
-            "ratio_per_solve": wall / c_wall, "steps_ratio": steps / c_steps,
-            "final_q_difference": dq, "final_v_difference": dv,
+            "atol": None, **compared(ours, theirs, theirs[0]["y"], relative=True),
             "multipliers": case.mech.m, "setting": f"h={plan.h:g}", "h": plan.h,
-            "cpu_ratio_per_step": (cpu / steps) / (c_cpu / c_steps),
             "newton": traj.counts["n_newton"], "yardstick_newton": theirs[0]["newton"],
             "yardstick_exact_steps": theirs[0]["exact_steps"],
             "yardstick_krylov": theirs[0]["krylov"]})
