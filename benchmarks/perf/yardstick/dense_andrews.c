@@ -54,6 +54,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "common.h"
+
 #include "andrews_model.h"
 
 #define NWIN 1000
@@ -65,15 +67,6 @@ static const double EPS = 2.220446049250313e-16;
 static const double WINDOW = 8.0;
 /* linalg.dense.RANK_RTOL */
 static const double RANK_RTOL = 1e-12;
-
-static inline double norm_of(const double *x, int n) {
-    double m = 0.0;
-    for (int i = 0; i < n; i++) {
-        const double a = fabs(x[i]);
-        m = a > m ? a : m;
-    }
-    return m;
-}
 
 /* --- small dense linear algebra ---------------------------------------------------- */
 
@@ -908,12 +901,6 @@ static inline int lobatto_step(struct state *s, double h, double tol, int max_it
 
 /* --- the loop ------------------------------------------------------------------------ */
 
-static double seconds_of(clockid_t clock) {
-    struct timespec t;
-    clock_gettime(clock, &t);
-    return t.tv_sec + 1e-9 * t.tv_nsec;
-}
-
 static inline double energy_of(const double *q, const double *v) {
     double e[1];
     energy(q, v, e);
@@ -955,18 +942,6 @@ static long solve(enum method method, struct coefficients c, long n, double h, d
     for (int i = 0; i < NWIN; i++)
         for (int j = 0; j < 3; j++) mx[j] = win[i][j] > mx[j] ? win[i][j] : mx[j];
     return iterations;
-}
-
-static int parse_double(const char *s, double *out) {
-    char *end;
-    *out = strtod(s, &end);
-    return *s != '\0' && *end == '\0' && isfinite(*out);
-}
-
-static int parse_long(const char *s, long *out) {
-    char *end;
-    *out = strtol(s, &end, 10);
-    return *s != '\0' && *end == '\0' && *out >= 1;
 }
 
 int main(int argc, char **argv) {

@@ -30,6 +30,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "common.h"
+
 #define S 3
 #define N 2
 #define NWIN 1000
@@ -114,15 +116,6 @@ struct residual { double RQ[S][N], RP[S][N], Rp[N], Rg[S - 1], Rv; };
 
 /* Max-norm over all entries. A NaN is dropped here where jnp.maximum would propagate it:
  * Newton's tests below fail on it alike (isfinite of the residual, of the iterate). */
-static inline double norm_of(const double *x, int n) {
-    double m = 0.0;
-    for (int i = 0; i < n; i++) {
-        const double a = fabs(x[i]);
-        m = a > m ? a : m;
-    }
-    return m;
-}
-
 static inline void end_position(const double *q0, const struct unknowns *z, double h,
                                 double *q1) {
     for (int k = 0; k < N; k++)
@@ -272,12 +265,6 @@ static inline __attribute__((always_inline)) int step(const struct system *P, do
     return it;
 }
 
-static double seconds_of(clockid_t clock) {
-    struct timespec t;
-    clock_gettime(clock, &t);
-    return t.tv_sec + 1e-9 * t.tv_nsec;
-}
-
 /* The solve from (q0, v0): n steps of h; the final state into q, v, maxima into mx. Returns
  * the Newton iterations, or -(the failing step) where Newton failed. */
 static inline __attribute__((always_inline)) long solve(
@@ -324,18 +311,6 @@ static long solve_as(enum problem kind, const struct system *P, long n, double h
     local.d[0] = 6.0 * SM;
     local.d[1] = 6.0 * Sm;
     return solve(&local, n, h, tol, max_iter, q0, v0, q, v, mx);
-}
-
-static int parse_double(const char *s, double *out) {
-    char *end;
-    *out = strtod(s, &end);
-    return *s != '\0' && *end == '\0' && isfinite(*out);
-}
-
-static int parse_long(const char *s, long *out) {
-    char *end;
-    *out = strtol(s, &end, 10);
-    return *s != '\0' && *end == '\0' && *out >= 1;
 }
 
 int main(int argc, char **argv) {
