@@ -23,15 +23,10 @@
 #include <string.h>
 #include <time.h>
 
+#include "common.h"
+
 #include "dae_model.h"
 #include "sundials.c"
-
-static double seconds(clockid_t clock)
-{
-    struct timespec ts;
-    clock_gettime(clock, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
 
 #define N_ARGS (12 + 2 * NEQ)
 
@@ -44,15 +39,7 @@ int main(int argc, char **argv)
         return 2;
     }
     double v[N_ARGS];
-    for (int i = 0; i < N_ARGS; i++) {
-        char *end;
-        v[i] = strtod(argv[1 + i], &end);
-        if (*argv[1 + i] == '\0' || *end != '\0') {
-            fprintf(stderr, "%s: argument %d (%s) is not a number\n", argv[0], 1 + i,
-                    argv[1 + i]);
-            return 2;
-        }
-    }
+    if (parse_numbers(argv, N_ARGS, v)) return 2;
     const double rtol = v[0], atol = v[1], matol = v[2];
     const int max_order = (int)v[3], max_nonlin = (int)v[4], max_fails = (int)v[5];
     const double first_step = v[6], min_step = v[7], max_step = v[8], t0 = v[9];
@@ -73,8 +60,8 @@ int main(int argc, char **argv)
     long steps = 0, counts[4] = {0};
     for (int r = 0; r < rounds; r++) {
         int flag;
-        const double start = seconds(CLOCK_MONOTONIC);
-        const double cpu = seconds(CLOCK_PROCESS_CPUTIME_ID);
+        const double start = seconds_of(CLOCK_MONOTONIC);
+        const double cpu = seconds_of(CLOCK_PROCESS_CPUTIME_ID);
         Solver *s = solver_new(NEQ, t0, y0, yp0, rtol, atols, id, 1, max_order, 5000000,
                                max_nonlin, max_fails, first_step, min_step, max_step, t_end,
                                &flag);
@@ -91,8 +78,8 @@ int main(int argc, char **argv)
                 return 1;
             }
         }
-        best = fmin(best, seconds(CLOCK_MONOTONIC) - start);
-        best_cpu = fmin(best_cpu, seconds(CLOCK_PROCESS_CPUTIME_ID) - cpu);
+        best = fmin(best, seconds_of(CLOCK_MONOTONIC) - start);
+        best_cpu = fmin(best_cpu, seconds_of(CLOCK_PROCESS_CPUTIME_ID) - cpu);
         solver_counts(s, counts);
         solver_state(s, y);
         solver_free(s);

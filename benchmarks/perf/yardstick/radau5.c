@@ -39,6 +39,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "common.h"
+
 #include "dae_model.h"
 
 #define EPS DBL_EPSILON
@@ -407,13 +409,6 @@ static int attempt(State *s, double t_end)
     return 0;
 }
 
-static double seconds(clockid_t clock)
-{
-    struct timespec ts;
-    clock_gettime(clock, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
-
 #define N_ARGS (12 + 2 * N + 3 + 27 + 3 + 3)
 
 int main(int argc, char **argv)
@@ -425,15 +420,7 @@ int main(int argc, char **argv)
         return 2;
     }
     double v[N_ARGS];
-    for (int i = 0; i < N_ARGS; i++) {
-        char *end;
-        v[i] = strtod(argv[1 + i], &end);
-        if (*argv[1 + i] == '\0' || *end != '\0') {
-            fprintf(stderr, "%s: argument %d (%s) is not a number\n", argv[0], 1 + i,
-                    argv[1 + i]);
-            return 2;
-        }
-    }
+    if (parse_numbers(argv, N_ARGS, v)) return 2;
     RTOL = v[0], ATOL = v[1], MATOL = v[2], THET = v[3], NEWTON_TOL = v[4];
     NIT = (int)v[5], SAFETY = v[6], FIRST_STEP = v[7], MAX_STEP = v[8];
     const double t0 = v[9], t_end = v[10];
@@ -455,8 +442,8 @@ int main(int argc, char **argv)
     double best = INFINITY, best_cpu = INFINITY;
     State s;
     for (int r = 0; r < rounds; r++) {
-        const double start = seconds(CLOCK_MONOTONIC);
-        const double cpu = seconds(CLOCK_PROCESS_CPUTIME_ID);
+        const double start = seconds_of(CLOCK_MONOTONIC);
+        const double cpu = seconds_of(CLOCK_PROCESS_CPUTIME_ID);
         if (!init(&s, t0, t_end, y0, yp0)) {
             fprintf(stderr, "rank-deficient stage matrix at t = %.17g\n", t0);
             return 1;
@@ -469,8 +456,8 @@ int main(int argc, char **argv)
                 return 1;
             }
         }
-        best = fmin(best, seconds(CLOCK_MONOTONIC) - start);
-        best_cpu = fmin(best_cpu, seconds(CLOCK_PROCESS_CPUTIME_ID) - cpu);
+        best = fmin(best, seconds_of(CLOCK_MONOTONIC) - start);
+        best_cpu = fmin(best_cpu, seconds_of(CLOCK_PROCESS_CPUTIME_ID) - cpu);
     }
     printf("steps %ld\nrejected %ld\njacobians %ld\nlu %ld\nnewton %ld\nf_evals %ld\n"
            "lin_solves %ld\nseconds %.9g\ncpu_seconds %.9g\ny", s.accepted, s.rejected,
