@@ -91,6 +91,24 @@ def baumgarte_field(mech: Mechanics, alpha: float, beta: float, schur=None):
     return field
 
 
+#: Equations of the stabilised field (its jaxpr, nested ones counted) from which
+#: :func:`erk_step` evaluates the stages in a loop instead of one after another.
+ROLL_EQUATIONS = 800
+
+
+def size(jaxpr) -> int:
+    """Number of equations of ``jaxpr``, those of the jaxprs nested in it counted."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        total += 1
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (tuple, list)) else (param,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    total += size(inner)
+    return total
+
+
 def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
     """One explicit Runge-Kutta step of ``tableau`` from ``(t0, y0)`` to ``t1``.
 
@@ -102,18 +120,28 @@ def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
 
     The stages are written out one after another for XLA to fuse: diffrax runs them in a
     loop with the stage values in buffers, which is an inner loop per step; straight-line
-    stages cost a fraction of that for the small systems, and the same arithmetic.
+    stages cost a fraction of that for the small systems, and the same arithmetic. A field
+    of :data:`ROLL_EQUATIONS` or more is evaluated in such a loop instead: each written-out
+    stage is a copy of the field in the program, and for a large field (dopri8's twelve
+    copies of a flexible body's) compiling them costs seconds that the loop saves, while
+    the loop's own cost per stage is small beside the field's; below that size the loop
+    costs more per step than the fusion of written-out stages saves. The sums are the same
+    in either form, term by term in the same order (a zero coefficient adds an exact zero),
+    and XLA may round them differently.
 
     Returns ``(y1, y_error, f_last)``: ``f_last`` is the last stage, ``field(t1, y1)`` for a
     first-same-as-last tableau (the next step's ``f0``).
     """
     dt = t1 - t0
-    fs = [field(t0, y0, None) if f0 is None else f0]
-    y = y0
-    for a_i, c_i in zip(tableau.a_lower, tableau.c):
-        # Zero coefficients are left out: each would add an exact zero.
-        y = y0 + dt * sum(float(a) * f for a, f in zip(a_i, fs) if a != 0)
-        fs.append(field(t1 if c_i == 1 else t0 + float(c_i) * dt, y, None))
+    first = field(t0, y0, None) if f0 is None else f0
+    if size(jax.make_jaxpr(field)(t0, y0, None).jaxpr) < ROLL_EQUATIONS:
+        fs = [first]
+        for a_i, c_i in zip(tableau.a_lower, tableau.c):
+            # Zero coefficients are left out: each would add an exact zero.
+            y = y0 + dt * sum(float(a) * f for a, f in zip(a_i, fs) if a != 0)
+            fs.append(field(t1 if c_i == 1 else t0 + float(c_i) * dt, y, None))
+    else:
+        fs, y = rolled_stages(tableau, field, t0, t1, dt, y0, first)
     ks = [dt * f for f in fs]
     if not tableau.ssal:
         y = y0 + sum(float(b) * k for b, k in zip(tableau.b_sol, ks) if b != 0)
@@ -121,6 +149,31 @@ def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
     if isinstance(y_error, int):
         y_error = jnp.zeros_like(y0)
     return y, y_error, fs[-1]
+
+
+def rolled_stages(tableau: diffrax.ButcherTableau, field, t0, t1, dt, y0, first):
+    """The stages ``f_1 ... f_s`` of :func:`erk_step` and the last stage's point, evaluated
+    in a ``lax.fori_loop`` with the stage values in one buffer, the coefficients of each
+    stage's row read from a table."""
+    s = tableau.num_stages
+    a = np.zeros((s, s))
+    for i, a_i in enumerate(tableau.a_lower):
+        a[i + 1, :i + 1] = a_i
+    c = np.concatenate([[0.0], tableau.c])
+
+    def stage(i, carry):
+        fs, _ = carry
+        row = jnp.asarray(a)[i]
+        total = row[0] * fs[0]
+        for j in range(1, s - 1):
+            total = total + row[j] * fs[j]
+        y = y0 + dt * total
+        ci = jnp.asarray(c)[i]
+        return fs.at[i].set(field(jnp.where(ci == 1, t1, t0 + ci * dt), y, None)), y
+
+    fs = jnp.zeros((s,) + y0.shape, y0.dtype).at[0].set(first)
+    fs, y = jax.lax.fori_loop(1, s, stage, (fs, y0))
+    return [fs[i] for i in range(s)], y
 
 
 def first_stage(solver, field, t0, y0):

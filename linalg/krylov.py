@@ -55,23 +55,29 @@ def bicgstab(A: Operator, b: jax.Array, M: Operator, tol: float, maxiter: int) -
     floor = tol * tol * jnp.vdot(b, b)
     one = jnp.ones((), b.dtype)
 
+    # Each pass of the loop is half an iteration, with one application of M and of A:
+    # the first half (``second`` false) forms p_k and v_k, the second t_k. Both halves'
+    # formulas are evaluated and the pass's own selected; the operator and the
+    # preconditioner, most of the program, then appear once in it, not twice.
     def body(state):
-        x, r, p, v, rho, alpha, omega, _, k = state
+        x, r, p, v, s, rho, alpha, omega, second, _, k = state
         rho_new = jnp.vdot(b, r)
-        p = r + (rho_new / rho * alpha / omega) * (p - omega * v)
-        p_hat = M(p)
-        v = A(p_hat)
-        alpha = rho_new / jnp.vdot(b, v)
-        s = r - alpha * v
-        early = jnp.vdot(s, s) < floor
-        s_hat = M(s)
-        t = A(s_hat)
-        omega = jnp.vdot(t, s) / jnp.vdot(t, t)
-        x = jnp.where(early, x + alpha * p_hat, x + alpha * p_hat + omega * s_hat)
-        r = jnp.where(early, s, s - omega * t)
-        go = (jnp.vdot(r, r) > floor) & (k + 1 < maxiter) & (rho_new != 0) & (alpha != 0) \
-            & (omega != 0)
-        return x, r, p, v, rho_new, alpha, omega, go, k + 1
+        p_new = r + (rho_new / rho * alpha / omega) * (p - omega * v)
+        u = M(jnp.where(second, s, p_new))
+        w = A(u)
+        # First half: u = M p_k, w = v_k.
+        alpha_new = rho_new / jnp.vdot(b, w)
+        s_new = r - alpha_new * w
+        early = jnp.vdot(s_new, s_new) < floor
+        first = (x + alpha_new * u, jnp.where(early, s_new, r), p_new, w, s_new, rho_new,
+                 alpha_new, omega, ~early, ~early, k + early)
+        # Second half: u = M s_k, w = t_k.
+        omega_new = jnp.vdot(w, s) / jnp.vdot(w, w)
+        r_new = s - omega_new * w
+        go = (jnp.vdot(r_new, r_new) > floor) & (k + 1 < maxiter) & (rho != 0) \
+            & (alpha != 0) & (omega_new != 0)
+        last = (x + omega_new * u, r_new, p, v, s, rho, alpha, omega_new, False, go, k + 1)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(second, a, b), last, first)
 
-    start = (jnp.zeros_like(b), b, b, b, one, one, one, jnp.vdot(b, b) > floor, 0)
-    return jax.lax.while_loop(lambda state: state[7], body, start)[0]
+    start = (jnp.zeros_like(b), b, b, b, b, one, one, one, False, jnp.vdot(b, b) > floor, 0)
+    return jax.lax.while_loop(lambda state: state[9], body, start)[0]

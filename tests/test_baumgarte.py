@@ -169,3 +169,34 @@ def test_the_unrolled_step_is_diffrax_step(name):
     np.testing.assert_allclose(ours_error, error, rtol=0, atol=1e-15)
     if solver.tableau.fsal:
         np.testing.assert_allclose(f_last, state1[1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(baumgarte.SOLVERS))
+def test_stages_in_a_loop_are_the_written_out_stages(name, monkeypatch):
+    # A large field's stages are evaluated in a loop (ROLL_EQUATIONS): the same sums term
+    # by term, which XLA may round differently; the error estimate, a cancellation of
+    # O(1) terms, agrees to their round-off.
+    case = problems.make("rigid-body")
+    field = baumgarte.baumgarte_field(case.mech, 3.0, 3.0)
+    solver = baumgarte.SOLVERS[name]()
+    y0 = jax.numpy.asarray(np.concatenate([case.q0, case.v0]))
+    t0, t1 = 0.3, 0.35
+
+    def compiled(roll_from):
+        # A new function each time: JAX's trace cache does not see ROLL_EQUATIONS.
+        monkeypatch.setattr(baumgarte, "ROLL_EQUATIONS", roll_from)
+        step = jax.jit(lambda y0: baumgarte.erk_step(
+            solver.tableau, field, t0, t1, y0, baumgarte.first_stage(solver, field, t0, y0)))
+        return step(y0), "while" in step.lower(y0).as_text()
+
+    size = baumgarte.size(jax.make_jaxpr(field)(t0, y0, None).jaxpr)
+    written, rolled = compiled(size + 1)
+    assert not rolled
+    looped, rolled = compiled(size)
+    assert rolled
+    (y, error, last), (y_loop, error_loop, last_loop) = written, looped
+    np.testing.assert_allclose(y_loop, y, rtol=4e-16, atol=0)
+    np.testing.assert_allclose(last_loop, last, rtol=1e-15, atol=1e-15)
+    np.testing.assert_allclose(error_loop, error, rtol=0, atol=1e-16)
+    if np.any(solver.tableau.b_error):
+        assert np.max(np.abs(error)) > 1e-15  # an estimate, not round-off alone
