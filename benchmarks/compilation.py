@@ -54,6 +54,7 @@ import json
 import os
 import platform
 import shutil
+import stat
 import sys
 import threading
 from pathlib import Path
@@ -244,9 +245,18 @@ class Watch:
 
 def size(where: Path) -> tuple[int, int]:
     """Number of entries (JAX's executables and kept programs) and bytes in a cache folder."""
-    files = [p for p in where.rglob("*") if p.is_file() and not p.name.startswith(".")]
-    return (sum(p.name.endswith(("-cache", ".program")) for p in files),
-            sum(p.stat().st_size for p in files))
+    entries = nbytes = 0
+    for path in where.rglob("*"):
+        if path.name.startswith("."):
+            continue
+        try:
+            info = path.stat()
+        except OSError:  # removed meanwhile: another process keeping the folder in bound
+            continue
+        if stat.S_ISREG(info.st_mode):
+            entries += path.name.endswith(("-cache", ".program"))
+            nbytes += info.st_size
+    return entries, nbytes
 
 
 def cold(where: Path | None) -> bool:

@@ -27,6 +27,7 @@ jax.config.update("jax_enable_x64", True)
 
 from benchmarks import compilation, pool  # noqa: E402  (after float64 is set)
 from integrators.loop import kernel_environment, xla_options  # noqa: E402
+from linalg.compiled import keeping  # noqa: E402
 
 # XLA reads its flags when JAX starts its CPU client, at the first computation: the tests
 # compile as the suite's workers do (without the one-kernel flag, which only changes how
@@ -59,11 +60,15 @@ _TEST_CODE = _test_code()
 
 @pytest.fixture(autouse=True)
 def kept_programs(request):
-    """Each test's programs kept whole (:func:`benchmarks.compilation.kept`), named by the
+    """Each test's programs kept whole (:func:`linalg.compiled.keeping`), named by the
     test and the hash of all the code it runs: a second ``make test`` on unchanged code
-    loads them instead of tracing and lowering each again. A test is deterministic (its
+    loads them instead of tracing and lowering each again. They go to a folder of their
+    own beside the suite's kept programs, under a bound of its own, so that the tests
+    never push a user's suite programs out. A test is deterministic (its
     random draws are seeded), so the programs it compiles are the same in every session;
     the runs inside it that keep their own programs (:func:`benchmarks.execute.execute`)
     use their own scope."""
-    with compilation.kept("test", request.node.nodeid, _TEST_CODE):
+    where = compilation.programs()
+    with keeping(None if where is None else where / "tests",
+                 compilation.identity("test", request.node.nodeid, _TEST_CODE)):
         yield

@@ -178,3 +178,23 @@ def test_programs_kept_by_one_invocation_run_in_the_next_identically(tmp_path):
 def test_with_the_cache_off_nothing_is_kept(tmp_path):
     rows = cli_run(tmp_path / "off", Path("off"), "--integrators", "rattle", "--h", "0.05")
     assert rows["rattle"]["setup_cache"] == "off"
+
+
+def test_the_size_skips_entries_removed_while_it_is_counted(tmp_path, monkeypatch):
+    # Another process keeping the folder in bound may remove an entry after the listing:
+    # b before a second look at it, c before the first. Nothing is raised, and what was
+    # gone when looked at is not counted.
+    for name, data in (("a", b"xx"), ("b", b"yyy"), ("c", b"z")):
+        (tmp_path / f"{name}.program").write_bytes(data)
+    stat = Path.stat
+    looks = {"b.program": 0, "c.program": 0}
+
+    def vanishing(self, *args, **kwargs):
+        if self.name in looks:
+            looks[self.name] += 1
+            if self.name == "c.program" or looks[self.name] > 1:
+                raise FileNotFoundError(self)
+        return stat(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "stat", vanishing)
+    assert compilation.size(tmp_path) == (2, 5)
