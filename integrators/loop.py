@@ -478,7 +478,9 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             first = compile_lifted(begin, carry, *buffers, donate=(1, 2))
             state, E0, I0 = jax.eval_shape(begin, carry, *buffers)
             with deferred_fallback() if not fallback else contextlib.nullcontext():
-                loop = (first, compile_lifted(run, state, E0, I0, *args, donate=(0,)), state)
+                loop = (first, compile_lifted(run, state, E0, I0, *args, donate=(0,),
+                                              name="with fallback" if fallback else ""),
+                        state)
             if tag is not None:
                 _LOOPS[tag] = loop
                 while len(_LOOPS) > CACHE_SIZE:

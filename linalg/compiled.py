@@ -150,20 +150,21 @@ class _Keeper:
         self.folder, self.identity = folder, identity
         self.calls: dict[str, int] = {}
 
-    def path(self, fn: Callable, args: tuple, static: dict) -> Path:
+    def path(self, fn: Callable, args: tuple, static: dict, name: str) -> Path:
         """The file of the program that :func:`compile_lifted` (this method's caller) is
-        asked for: named by the scope's identity, the call site, the function, the shapes
-        and plain static arguments, and how many such calls the scope made before."""
+        asked for: named by the scope's identity, the call site, the function, the shapes,
+        plain static arguments and ``name``, and how many such calls the scope made
+        before."""
         caller = sys._getframe(2)  # compile_lifted's caller
         site = f"{Path(caller.f_code.co_filename).name}:{caller.f_lineno}"
         inner = getattr(fn, "func", fn)
-        name = f"{getattr(inner, '__module__', '')}.{getattr(inner, '__qualname__', inner)}"
+        qualified = f"{getattr(inner, '__module__', '')}.{getattr(inner, '__qualname__', inner)}"
         leaves, tree = jax.tree_util.tree_flatten(args)
         shapes = [(np.shape(x), str(getattr(x, "dtype", type(x))),
                    bool(getattr(x, "weak_type", False))) for x in leaves]
         plain = sorted((k, repr(v)) for k, v in static.items()
                        if isinstance(v, (str, int, float, bool, type(None))))
-        call = repr((site, name, str(tree), shapes, plain))
+        call = repr((site, qualified, name, str(tree), shapes, plain))
         order = self.calls.get(call, 0)
         self.calls[call] = order + 1
         digest = hashlib.sha256(f"{self.identity}\n{call}\n{order}".encode()).hexdigest()
@@ -334,7 +335,7 @@ def _calls_back(jaxpr) -> bool:
     return False
 
 
-def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
+def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (), name: str = "",
                    **static: Any) -> Lifted:
     """``jax.jit(fn).lower(*args, **static).compile()`` with the constants of at least
     :data:`LIFT_BYTES` passed as arguments (module notes); inside :func:`keeping`, the
@@ -351,9 +352,13 @@ def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
         Positions in ``args`` whose arrays the program may reuse for its results
         (``jax.jit``'s ``donate_argnums``): a caller that hands them over spares the copy
         of a large buffer it would not read again.
+    name : str
+        What tells this program from others compiled at the same call site with the same
+        shapes, in the name of its kept file. Without it only their order in the scope
+        does, and a call that an in-memory cache spares shifts the order of the next.
     """
     keeper = _keeper.get()
-    path = keeper.path(fn, args, static) if keeper is not None else None
+    path = keeper.path(fn, args, static, name) if keeper is not None else None
     if path is not None:
         kept = keeper.load(path)
         if kept is not None:

@@ -64,6 +64,20 @@ def test_two_calls_of_one_site_in_a_scope_are_two_programs(tmp_path):
     assert watch.kept == 2
 
 
+def test_a_named_program_is_found_by_its_name_when_a_call_before_it_was_spared(tmp_path):
+    # The loop without and with the Newton fallback: one call site, the same shapes. An
+    # in-memory cache may spare the first call in a later scope; the second must not then
+    # load the first's program.
+    def scaled(scale, name):
+        return float(compile_lifted(lambda x: x * scale, jnp.ones(2), name=name)(jnp.ones(2))[0])
+
+    with keeping(tmp_path, "same run"):
+        assert (scaled(2.0, "plain"), scaled(3.0, "with fallback")) == (2.0, 3.0)
+    with compilation.Watch() as watch, keeping(tmp_path, "same run"):
+        assert scaled(3.0, "with fallback") == 3.0
+    assert watch.kept == 1
+
+
 def test_a_program_that_calls_back_into_python_is_not_kept(tmp_path):
     def f(x):
         y = jax.pure_callback(lambda a: np.asarray(a) * 2.0, jax.ShapeDtypeStruct((2,), x.dtype), x)

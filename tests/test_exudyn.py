@@ -33,9 +33,13 @@ def test_chain_final_state_agrees_with_exudyn():
     exu = pytest.importorskip("exudyn")
     from exudyn import itemInterface as items
 
-    args = bench.parser().parse_args(["--steps", "5", "--rounds", "1", "--best-of", "1"])
+    # The default 100 steps, each solve the fastest of 3: the time per step is a
+    # difference of solves, which 5 steps timed once left to the load (not positive with
+    # the other test worker busy).
+    args = bench.parser().parse_args(["--rounds", "1"])
     row = bench.compare(exu, items, "chain", 4, args)
-    assert row["steps"] == row["exudyn_steps"] == 5
+    assert row["status"] == "ok", row["status"]
+    assert row["steps"] == row["exudyn_steps"] == 100
     assert row["final_q_difference"] <= bench.AGREEMENT
     assert row["final_v_difference"] <= bench.AGREEMENT
     assert row["agree"] and row["newton_per_step"] >= 1 and row["exudyn_newton_per_step"] >= 1
