@@ -25,8 +25,10 @@ argument and result structure and the lifted constants; a later process in the s
 scope loads it without tracing. The identity must determine every program compiled in
 the scope: the caller gives the run's resolved problem and method, settings, device, the
 code's hash and the library versions (:func:`benchmarks.execute.execute`), and each program
-is then named by its call site, function, argument shapes and the order of such calls in
-the scope. Programs that call back into Python (``pure_callback``: the SuperLU path)
+is then named by its call site, function, argument shapes, the caller's ``name`` for it
+and the order of such calls in the scope. The order alone cannot tell apart two programs
+of one call site: a call that an in-memory cache spares in one process and not in another
+shifts it, so a site that compiles more than one program names each. Programs that call back into Python (``pure_callback``: the SuperLU path)
 are never kept, and neither are those whose lifted constants exceed :data:`KEEP_BYTES`.
 A file that cannot be read back is compiled afresh and overwritten; the folder is kept
 under :data:`KEPT_MAX_BYTES` by dropping the least recently used files.
