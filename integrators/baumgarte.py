@@ -43,7 +43,7 @@ import optimistix
 from integrators.base import Failure, Grid, Integrator, Trajectory
 from integrators.fixed import FixedStep
 from integrators.record import Tally, ended, kept, series, series_names, tracker
-from linalg.compiled import compile_lifted
+from linalg.compiled import compile_lifted, equations
 from problems.case import Case
 from problems.mechanics import Mechanics
 
@@ -91,22 +91,9 @@ def baumgarte_field(mech: Mechanics, alpha: float, beta: float, schur=None):
     return field
 
 
-#: Equations of the stabilised field (its jaxpr, nested ones counted) from which
+#: Equations of the stabilised field (its jaxpr's, nested ones counted) from which
 #: :func:`erk_step` evaluates the stages in a loop instead of one after another.
 ROLL_EQUATIONS = 800
-
-
-def size(jaxpr) -> int:
-    """Number of equations of ``jaxpr``, those of the jaxprs nested in it counted."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        total += 1
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (tuple, list)) else (param,):
-                inner = getattr(sub, "jaxpr", sub)
-                if hasattr(inner, "eqns"):
-                    total += size(inner)
-    return total
 
 
 def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
@@ -134,7 +121,7 @@ def erk_step(tableau: diffrax.ButcherTableau, field, t0, t1, y0, f0):
     """
     dt = t1 - t0
     first = field(t0, y0, None) if f0 is None else f0
-    if size(jax.make_jaxpr(field)(t0, y0, None).jaxpr) < ROLL_EQUATIONS:
+    if sum(1 for _ in equations(jax.make_jaxpr(field)(t0, y0, None).jaxpr)) < ROLL_EQUATIONS:
         fs = [first]
         for a_i, c_i in zip(tableau.a_lower, tableau.c):
             # Zero coefficients are left out: each would add an exact zero.

@@ -28,10 +28,11 @@ code's hash and the library versions (:func:`benchmarks.execute.execute`), and e
 is then named by its call site, function, argument shapes, the caller's ``name`` for it
 and the order of such calls in the scope. The order alone cannot tell apart two programs
 of one call site: a call that an in-memory cache spares in one process and not in another
-shifts it, so a site that compiles more than one program names each. Programs that call back into Python (``pure_callback``: the SuperLU path)
-are never kept, and neither are those whose lifted constants exceed :data:`KEEP_BYTES`.
-A file that cannot be read back is compiled afresh and overwritten; the folder is kept
-under :data:`KEPT_MAX_BYTES` by dropping the least recently used files.
+shifts it, so a site that compiles more than one program names each. Programs that call
+back into Python (``pure_callback``: the SuperLU path) are never kept, and neither are
+those whose lifted constants exceed :data:`KEEP_BYTES`. A file that cannot be read back
+is compiled afresh and overwritten; the folder is kept under :data:`KEPT_MAX_BYTES` by
+dropping the least recently used files.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import sys
 import tempfile
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -324,21 +325,25 @@ def keeping(folder: Path | None, identity: str):
         _keeper.reset(token)
 
 
-def _calls_back(jaxpr) -> bool:
-    """Whether a jaxpr (or one nested in it) calls back into Python."""
+def equations(jaxpr) -> Iterator:
+    """The equations of a jaxpr and of every jaxpr nested in it (loop bodies, branches,
+    inner calls)."""
     for eqn in jaxpr.eqns:
-        if "callback" in eqn.primitive.name:
-            return True
+        yield eqn
         for param in eqn.params.values():
             for sub in param if isinstance(param, (tuple, list)) else (param,):
                 inner = getattr(sub, "jaxpr", sub)
-                if hasattr(inner, "eqns") and _calls_back(inner):
-                    return True
-    return False
+                if hasattr(inner, "eqns"):
+                    yield from equations(inner)
 
 
-def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (), name: str = "",
-                   **static: Any) -> Lifted:
+def _calls_back(jaxpr) -> bool:
+    """Whether a jaxpr (or one nested in it) calls back into Python."""
+    return any("callback" in eqn.primitive.name for eqn in equations(jaxpr))
+
+
+def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
+                   name: str = "", **static: Any) -> Lifted:
     """``jax.jit(fn).lower(*args, **static).compile()`` with the constants of at least
     :data:`LIFT_BYTES` passed as arguments (module notes); inside :func:`keeping`, the
     program kept by an earlier process is loaded instead, or this one kept.

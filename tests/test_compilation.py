@@ -69,7 +69,8 @@ def test_a_named_program_is_found_by_its_name_when_a_call_before_it_was_spared(t
     # in-memory cache may spare the first call in a later scope; the second must not then
     # load the first's program.
     def scaled(scale, name):
-        return float(compile_lifted(lambda x: x * scale, jnp.ones(2), name=name)(jnp.ones(2))[0])
+        program = compile_lifted(lambda x: x * scale, jnp.ones(2), name=name)
+        return float(program(jnp.ones(2))[0])
 
     with keeping(tmp_path, "same run"):
         assert (scaled(2.0, "plain"), scaled(3.0, "with fallback")) == (2.0, 3.0)
