@@ -127,21 +127,21 @@ def frozen_linear(residual: Callable[[Any], Any], z0: Any, rows: Any | None = No
     :func:`dense_linear`) and applied to every residual: one Jacobian and one factorisation
     per solve in place of one per iteration. ``terms`` is ``max_i sum_j |J_0,ij| |z_j|``."""
     x0, unravel = ravel_pytree(z0)
-    r0, _ = ravel_pytree(residual(z0))
 
     def flat(x):
         return ravel_pytree(residual(unravel(x)))[0]
 
     J = jax.jacfwd(flat)(x0)
+    # The residual has z's structure (newton), so the row weights broadcast against z0's.
     weights = None if rows is None else ravel_pytree(jax.tree_util.tree_map(
-        lambda w, a: jnp.broadcast_to(w, jnp.shape(a)), rows, residual(z0)))[0]
+        lambda w, a: jnp.broadcast_to(w, jnp.shape(a)), rows, z0))[0]
     F = reused_factor(J if weights is None else J / weights[:, None])
-    size = jnp.abs(J)
+    magnitude = jnp.abs(J)
 
     def linear(z, r):
         x, rx = ravel_pytree(z)[0], ravel_pytree(r)[0]
         dx = reused_solve(F, -(rx if weights is None else rx / weights))
-        return unravel(dx), jnp.max(size @ jnp.abs(x))
+        return unravel(dx), jnp.max(magnitude @ jnp.abs(x))
 
     return linear
 
