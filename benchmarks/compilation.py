@@ -22,14 +22,19 @@ Programs kept whole
 JAX needs a program traced and lowered to compute its key, which is most of a warm
 set-up. The main programs of a run (the time loop, the start, the recorder's measures,
 the case's checks: everything :func:`linalg.compiled.compile_lifted` compiles) are also
-kept whole, serialized executables that load without tracing, in the folder's
-``programs/`` (:func:`programs`; bound :data:`linalg.compiled.KEPT_MAX_BYTES`). They are
-named by :func:`identity`: the hash of this project's code (every file of
-:data:`CODE_PACKAGES`), the versions of :data:`LIBRARIES`, the processor's features,
-``XLA_FLAGS``, the run's resolved problem, method, settings and device, and then per
-program its call site, function, argument shapes and order (:mod:`linalg.compiled`). Only
-runs of the project's own problems and methods on the CPU keep programs
-(:func:`kept_for`): a plug-in's code is not in the hash.
+kept whole, serialized executables, in the folder's ``programs/`` (:func:`programs`; bound
+:data:`linalg.compiled.KEPT_MAX_BYTES`), in two ways (:mod:`linalg.compiled`):
+
+- by content, in every process that enables the cache: named by the hash of the traced
+  program, the versions of jax and jaxlib, the processor's features and ``XLA_FLAGS``, and
+  loaded without lowering by any process that traces the same program (a test, a suite
+  after a change elsewhere in the code);
+- by name, for a run: named by :func:`identity`, the hash of this project's code (every
+  file of :data:`CODE_PACKAGES`), the versions of :data:`LIBRARIES`, the processor's
+  features, ``XLA_FLAGS``, the run's resolved problem, method, settings and device, and
+  then per program its call site, function, argument shapes and order, and loaded without
+  tracing. Only runs of the project's own problems and methods on the CPU keep programs
+  by name (:func:`kept_for`): a plug-in's code is not in the hash.
 
 Bound and clearing
 ------------------
@@ -63,7 +68,7 @@ import jax
 import jaxlib
 
 from benchmarks.records import versions
-from linalg.compiled import KEPT_EVENT, KEPT_MAX_BYTES, keeping
+from linalg.compiled import KEPT_EVENT, KEPT_MAX_BYTES, keep_by_content, keeping
 
 #: Environment variable naming the cache folder, or ``off``.
 ENV = "DRIFTBENCH_COMPILE_CACHE"
@@ -137,6 +142,8 @@ def enable(setting: str | None = None) -> Path | None:
     from jax._src import compilation_cache
     compilation_cache.reset_cache()
     _enabled[:] = [where]
+    keep_by_content(programs(), json.dumps([versions(("jax", "jaxlib")), platform.machine(),
+                                            _cpu_features()]))
     return where
 
 
@@ -243,9 +250,8 @@ class Watch:
         return "cold" if self.hits == 0 else "partial"
 
 
-def size(where: Path) -> tuple[int, int]:
-    """Number of entries (JAX's executables and kept programs) and bytes in a cache folder."""
-    entries = nbytes = 0
+def _files(where: Path):
+    """``(path, stat)`` of each file under a cache folder, as the walk finds it."""
     for path in where.rglob("*"):
         if path.name.startswith("."):
             continue
@@ -254,8 +260,20 @@ def size(where: Path) -> tuple[int, int]:
         except OSError:  # removed meanwhile: another process keeping the folder in bound
             continue
         if stat.S_ISREG(info.st_mode):
-            entries += path.name.endswith(("-cache", ".program"))
-            nbytes += info.st_size
+            yield path, info
+
+
+def _entry(path: Path) -> bool:
+    """Whether a file is an entry: one of JAX's executables or a kept program."""
+    return path.name.endswith(("-cache", ".program"))
+
+
+def size(where: Path) -> tuple[int, int]:
+    """Number of entries (JAX's executables and kept programs) and bytes in a cache folder."""
+    entries = nbytes = 0
+    for path, info in _files(where):
+        entries += _entry(path)
+        nbytes += info.st_size
     return entries, nbytes
 
 
@@ -263,8 +281,9 @@ def cold(where: Path | None) -> bool:
     """Whether the cache folder ``where`` (this version's, :func:`folder`) holds nothing
     to read back: missing, empty, or only other versions' entries beside it. ``False``
     with the cache off (``None``): nothing is to be read back either way, and the run says
-    so in its ``setup_cache`` column."""
-    return where is not None and (not where.is_dir() or size(where)[0] == 0)
+    so in its ``setup_cache`` column. The walk stops at the first entry: every command
+    asks, and a warm folder holds thousands."""
+    return where is not None and not any(_entry(path) for path, _ in _files(where))
 
 
 def first_run_note(where: Path) -> str:

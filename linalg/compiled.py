@@ -19,20 +19,34 @@ Programs kept on disk
 ---------------------
 JAX's persistent cache (:mod:`benchmarks.compilation`) spares XLA's compilation but not
 tracing and lowering, which it needs for its key: most of a warm set-up of a small
-problem is then Python. Inside :func:`keeping` (a folder and an identity),
-:func:`compile_lifted` keeps what it compiles as a file: the serialized executable, its
-argument and result structure and the lifted constants; a later process in the same
-scope loads it without tracing. The identity must determine every program compiled in
-the scope: the caller gives the run's resolved problem and method, settings, device, the
-code's hash and the library versions (:func:`benchmarks.execute.execute`), and each program
-is then named by its call site, function, argument shapes, the caller's ``name`` for it
-and the order of such calls in the scope. The order alone cannot tell apart two programs
-of one call site: a call that an in-memory cache spares in one process and not in another
-shifts it, so a site that compiles more than one program names each. Programs that call
-back into Python (``pure_callback``: the SuperLU path) are never kept, and neither are
-those whose lifted constants exceed :data:`KEEP_BYTES`. A file that cannot be read back
-is compiled afresh and overwritten; the folder is kept under :data:`KEPT_MAX_BYTES` by
-dropping the least recently used files.
+problem is then Python. :func:`compile_lifted` keeps what it compiles as files in two
+ways, each holding the serialized executable and the structure of its arguments and
+results.
+
+*By content* (:func:`keep_by_content`, in every process that uses the cache): a program
+is named by the hash of what it was traced to: its jaxpr as printed (every equation with
+its parameters and literals), the values of the constants it holds, the types of those it
+takes as arguments and of its inputs, the donated inputs, JAX's settings, ``XLA_FLAGS``,
+the device and the library versions. Whatever code or scope traced it, the same hash is
+the same program, so a later process that traces it again loads it without lowering, and
+so do tests and suites of other code that trace to it. Programs of a primitive JAX did not
+know when keeping began (a plug-in's own primitive, whose lowering the hash does not
+cover) are not kept this way.
+
+*By name* (inside :func:`keeping`, a folder and an identity): a later process in the same
+scope loads the program without tracing it either. The identity must determine every
+program compiled in the scope: the caller gives the run's resolved problem and method,
+settings, device, the code's hash and the library versions
+(:func:`benchmarks.execute.execute`), and each program is then named by its call site,
+function, argument shapes, the caller's ``name`` for it and the order of such calls in
+the scope. The order alone cannot tell apart two programs of one call site: a call that an
+in-memory cache spares in one process and not in another shifts it, so a site that
+compiles more than one program names each.
+
+Programs that call back into Python (``pure_callback``: the SuperLU path) are kept in
+neither way, and no program whose lifted constants exceed :data:`KEEP_BYTES` is kept by
+name. A file that cannot be read back is compiled afresh and overwritten; the folder is
+kept under :data:`KEPT_MAX_BYTES` by dropping the least recently used files.
 """
 
 from __future__ import annotations
@@ -174,53 +188,68 @@ class _Keeper:
         return self.folder / f"{digest[:40]}.program"
 
     def load(self, path: Path) -> "Lifted | None":
-        from jax.experimental import serialize_executable
-        if not _lapack_ready():
+        kept = _fetch(path)
+        if kept is None or len(kept[2]) != 2:
             return None
-        try:
-            with open(path, "rb") as f:
-                payload, in_tree, out_tree, values, result_tree = pickle.load(f)
-            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-            os.utime(path)  # recently used: the last to be dropped
-        except Exception:  # missing, damaged or foreign: compiled afresh and written anew
-            return None
-        jax.monitoring.record_event(KEPT_EVENT)
+        _, compiled, (values, result_tree) = kept
         return Lifted(compiled, [jnp.asarray(v) for v in values], result_tree)
 
-    def save(self, path: Path, compiled, values: list[jax.Array], result_tree,
-             read: bytes | None) -> None:
-        """Write the program; ``read``: its executable as JAX's persistent cache held it
-        (``None``: compiled here), see :func:`_remember_cache_reads`."""
-        from jax.experimental import serialize_executable
-        if sum(v.nbytes for v in values) > KEEP_BYTES:
-            return
-        try:
-            if read is None:
-                payload, in_tree, out_tree = serialize_executable.serialize(compiled)
-            else:
-                payload, in_tree, out_tree = _serialize_as_read(compiled, read)
-            with io.BytesIO() as buffer:
-                pickle.dump((payload, in_tree, out_tree, [np.asarray(v) for v in values],
-                             result_tree), buffer, protocol=pickle.HIGHEST_PROTOCOL)
-                data = buffer.getvalue()
-        except Exception:  # not serializable (a pytree node pickle does not know): not kept
-            return
-        # Written whole, then renamed: a process reading it never sees part of a file. A
-        # full or read-only disk only leaves the program not kept.
-        try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            fd, temporary = tempfile.mkstemp(dir=self.folder, suffix=".part")
-        except OSError:
-            return
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(temporary, path)
-        except OSError:
-            with contextlib.suppress(OSError):
-                os.unlink(temporary)
-            return
-        _bound(self.folder, KEPT_MAX_BYTES)
+    def save(self, path: Path, executable: tuple, values: list[jax.Array], result_tree) -> None:
+        """Write the program: ``executable`` as :func:`_serialized` gives it."""
+        if sum(v.nbytes for v in values) <= KEEP_BYTES:
+            _store(path, (*executable, [np.asarray(v) for v in values], result_tree))
+
+
+def _fetch(path: Path) -> tuple | None:
+    """What ``path`` keeps: ``(executable, compiled, rest)``, the serialized executable
+    (:func:`_serialized`), the program loaded from it (and counted, :data:`KEPT_EVENT`) and
+    the rest of the record; ``None`` where it is missing or cannot be read or loaded."""
+    from jax.experimental import serialize_executable
+    if not _lapack_ready():
+        return None
+    try:
+        with open(path, "rb") as f:
+            payload, in_tree, out_tree, *rest = pickle.load(f)
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        os.utime(path)  # recently used: the last to be dropped
+    except Exception:  # missing, damaged or foreign: compiled afresh and written anew
+        return None
+    jax.monitoring.record_event(KEPT_EVENT)
+    return (payload, in_tree, out_tree), compiled, rest
+
+
+def _store(path: Path, record: tuple) -> None:
+    """Write ``record`` to ``path`` whole, then rename it: a process reading it never sees
+    part of a file. A full or read-only disk, or a record pickle cannot write, only leaves
+    it not kept."""
+    try:
+        data = pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, temporary = tempfile.mkstemp(dir=path.parent, suffix=".part")
+    except Exception:
+        return
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(temporary, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        return
+    _bound(path.parent, KEPT_MAX_BYTES)
+
+
+def _serialized(compiled, read: bytes | None) -> tuple | None:
+    """``(payload, in_tree, out_tree)`` of a compiled program, as :func:`_fetch` reads it;
+    ``read``: its executable as JAX's persistent cache held it (``None``: compiled here),
+    see :func:`_remember_cache_reads`. ``None`` where it cannot be serialized."""
+    from jax.experimental import serialize_executable
+    try:
+        if read is None:
+            return serialize_executable.serialize(compiled)
+        return _serialize_as_read(compiled, read)
+    except Exception:  # a pytree node pickle does not know: not kept
+        return None
 
 
 #: The serialized executable that JAX's persistent cache last read in this thread.
@@ -325,6 +354,72 @@ def keeping(folder: Path | None, identity: str):
         _keeper.reset(token)
 
 
+#: The folder of programs kept by their content (:func:`keep_by_content`), what besides
+#: the program determines its executable, and the primitives JAX had lowering rules for.
+_by_content: list = [None, "", frozenset()]
+
+
+def _jax_primitives() -> frozenset:
+    from jax._src.interpreters import mlir
+    rules = [mlir._lowerings, *getattr(mlir, "_platform_specific_lowerings", {}).values()]
+    return frozenset(p for table in rules for p in table)
+
+
+def keep_by_content(folder: Path | None, salt: str = "") -> None:
+    """Keep every program :func:`compile_lifted` compiles in ``folder`` (``None``: none),
+    named by the hash of its traced content (module notes); ``salt`` names what else
+    decides the executable (the library versions, the processor).
+
+    Only programs of primitives that JAX could lower when this was called are kept: one
+    registered later (a plug-in's own primitive) has a lowering the hash does not cover.
+    """
+    if folder is not None:
+        _remember_cache_reads()
+    _by_content[:] = [None if folder is None else Path(folder), salt,
+                      frozenset() if folder is None else _jax_primitives()]
+
+
+def _content_path(closed, slots: dict[int, int], values: list[jax.Array],
+                  donated: list[bool]) -> Path | None:
+    """The file of a traced program kept by its content: the hash of its jaxpr (printed:
+    every equation, its parameters and literals), the values of the constants it holds and
+    the types of those it takes as arguments, of its inputs, the donated inputs, JAX's
+    settings, ``XLA_FLAGS``, the device and the salt. ``None`` outside
+    :func:`keep_by_content`, for a primitive it does not know, or for a constant that has no
+    bytes (an extended type, an object)."""
+    folder, salt, known = _by_content
+    if folder is None:
+        return None
+    inner = []
+    for eqn in equations(closed.jaxpr):
+        if eqn.primitive not in known:
+            return None
+        inner += [c for param in eqn.params.values()
+                  for sub in (param if isinstance(param, (tuple, list)) else (param,))
+                  for c in getattr(sub, "consts", ())]
+    digest = hashlib.sha256(salt.encode())
+    digest.update(repr(sorted((k, repr(v)) for k, v in jax.config.values.items())).encode())
+    digest.update(os.environ.get("XLA_FLAGS", "").encode())
+    device = jax.devices()[0]
+    digest.update(f"{device.platform} {device.device_kind}".encode())
+    digest.update(str(closed.jaxpr).encode())
+    digest.update(repr([(a.shape, str(a.dtype), a.weak_type) for a in closed.in_avals]).encode())
+    digest.update(repr([(v.shape, str(v.dtype), getattr(v, "weak_type", False))
+                        for v in values] + [slots, donated]).encode())
+    try:
+        for i, c in enumerate(list(closed.consts) + inner):
+            if i in slots:  # an argument: its values are not in the program
+                continue
+            array = np.asarray(c)
+            if array.dtype == object:  # its bytes would be addresses
+                return None
+            digest.update(repr((array.shape, array.dtype.str)).encode())
+            digest.update(np.ascontiguousarray(array).tobytes())
+    except Exception:
+        return None
+    return folder / f"content-{digest.hexdigest()[:40]}.program"
+
+
 def equations(jaxpr) -> Iterator:
     """The equations of a jaxpr and of every jaxpr nested in it (loop bodies, branches,
     inner calls)."""
@@ -403,11 +498,22 @@ def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
     flat_args = jax.tree_util.tree_leaves(args)
     # The flat arguments follow the lifted constants (argument 0 of run).
     given = [i in donate for i, arg in enumerate(args) for _ in jax.tree_util.tree_leaves(arg)]
-    lowered = jax.jit(run, donate_argnums=tuple(1 + i for i, d in enumerate(given) if d)
-                      ).lower(values, *flat_args)
-    _read.serialized = None
-    compiled = lowered.compile()
-    give_back_heap()
-    if path is not None and not _calls_back(jaxpr):
-        keeper.save(path, compiled, values, traced.out_tree, _read.serialized)
+    calls_back = _calls_back(jaxpr)
+    by_content = None if calls_back else _content_path(closed, slots, values, given)
+    kept = None if by_content is None else _fetch(by_content)
+    record = None
+    if kept is not None:
+        record, compiled, _ = kept
+    else:
+        lowered = jax.jit(run, donate_argnums=tuple(1 + i for i, d in enumerate(given) if d)
+                          ).lower(values, *flat_args)
+        _read.serialized = None
+        compiled = lowered.compile()
+        give_back_heap()
+        if by_content is not None or (path is not None and not calls_back):
+            record = _serialized(compiled, _read.serialized)
+        if by_content is not None and record is not None:
+            _store(by_content, record)
+    if path is not None and record is not None:
+        keeper.save(path, record, values, traced.out_tree)
     return Lifted(compiled, values, traced.out_tree)

@@ -26,6 +26,12 @@ from linalg.compiled import compile_lifted, keeping
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.fixture(autouse=True)
+def by_name_only(monkeypatch):
+    """The tests of programs kept by name see no program kept by its content."""
+    monkeypatch.setattr(compiled, "_by_content", [None, "", frozenset()])
+
+
 def programs_in(folder: Path) -> list[Path]:
     return sorted(folder.glob("*.program"))
 
@@ -161,10 +167,12 @@ def cli_run(out: Path, cache: Path, *args, stderr: list | None = None) -> dict:
         return {row["integrator"]: row for row in csv.DictReader(f)}
 
 
+@pytest.mark.slow
 def test_programs_kept_by_one_invocation_run_in_the_next_identically(tmp_path):
     # LAPACK (lobatto3ab2's Newton solves) from a program that was never lowered in the
     # loading process; the kept file written once from a compilation and once from an
-    # executable that JAX's own cache served.
+    # executable that JAX's own cache served; and, with the named files gone, every
+    # program found again by its content: a traced program hashes alike in every process.
     # The first invocation on the empty cache says once that it compiles; the next not.
     cache = tmp_path / "cache"
     args = ("--integrators", "lobatto3ab2", "rattle", "--h", "0.05")
@@ -188,6 +196,99 @@ def test_programs_kept_by_one_invocation_run_in_the_next_identically(tmp_path):
     for method in ("lobatto3ab2", "rattle"):
         assert from_jax[method]["q_final"] == again[method]["q_final"] == cold[method]["q_final"]
         assert again[method]["setup_cache"] == "warm"
+    by_content = set(kept.glob("content-*.program"))
+    assert by_content
+    for p in set(programs_in(kept)) - by_content:
+        p.unlink()
+    traced = cli_run(tmp_path / "traced", cache, *args)
+    assert set(kept.glob("content-*.program")) == by_content
+    assert len(programs_in(kept)) > len(by_content)  # the named ones, written anew
+    for method in ("lobatto3ab2", "rattle"):
+        assert traced[method]["q_final"] == cold[method]["q_final"]
+        assert traced[method]["setup_cache"] == "warm"
+
+
+@pytest.fixture
+def by_content(tmp_path, monkeypatch):
+    """Programs kept by their content in a folder of the test's own."""
+    monkeypatch.setattr(compiled, "_by_content", [None, "", frozenset()])
+    compiled.keep_by_content(tmp_path / "content", "salt")
+    return tmp_path / "content"
+
+
+def traced_twice(fn, *args):
+    """Compile ``fn`` twice outside any named scope: the results and the second's watch."""
+    first = compile_lifted(fn, *args)(*args)
+    with compilation.Watch() as watch:
+        again = compile_lifted(fn, *args)(*args)
+    return np.asarray(first), np.asarray(again), watch
+
+
+def test_a_program_traced_again_is_loaded_by_its_content(by_content):
+    def f(x):
+        return jnp.linalg.solve(jnp.eye(3) * 2.0 + x[:, None], x) + jnp.sin(x)
+
+    first, again, watch = traced_twice(f, jnp.arange(3.0))
+    assert watch.kept == 1 and watch.compiled == 0
+    np.testing.assert_array_equal(again, first)
+    assert len(programs_in(by_content)) == 1
+
+
+def test_a_damaged_program_kept_by_content_is_compiled_afresh_and_replaced(by_content):
+    def f(x):
+        return x * 2.0 + 1.0
+
+    compile_lifted(f, jnp.ones(2))
+    (path,) = programs_in(by_content)
+    path.write_bytes(b"not a program")
+    with compilation.Watch() as watch:
+        out = compile_lifted(f, jnp.ones(2))(jnp.ones(2))
+    assert np.all(np.asarray(out) == 3.0) and watch.kept == 0
+    _, again, watch = traced_twice(f, jnp.ones(2))
+    assert watch.kept == 1 and np.all(again == 3.0)
+
+
+def test_a_constant_held_in_the_program_is_part_of_its_content(by_content):
+    # Small constants stay in the program, where XLA may fold them: other values, another
+    # program.
+    x = jnp.ones(2)
+    for scale in (np.array([2.0, 3.0]), np.array([2.0, 4.0])):
+        assert np.all(np.asarray(compile_lifted(lambda y: y * scale, x)(x)) == scale)
+    assert len(programs_in(by_content)) == 2
+
+
+def test_a_lifted_constant_is_an_argument_and_one_program_serves_other_values(by_content):
+    n = compiled.LIFT_BYTES // 8
+    x = jnp.ones(n)
+    for scale in (np.full(n, 2.0), np.full(n, 5.0)):
+        assert np.all(np.asarray(compile_lifted(lambda y: y * scale, x)(x)) == scale)
+    assert len(programs_in(by_content)) == 1
+
+
+def test_other_xla_flags_are_another_program(by_content, monkeypatch):
+    def f(x):
+        return x * 2.0
+
+    compile_lifted(f, jnp.ones(2))
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
+    compile_lifted(f, jnp.ones(2))
+    assert len(programs_in(by_content)) == 2
+
+
+def test_calls_back_and_primitives_registered_later_are_not_kept_by_content(by_content):
+    from jax.extend.core import Primitive
+    from jax.interpreters import mlir
+
+    def called_back(x):
+        return jax.pure_callback(lambda a: np.asarray(a) * 2.0,
+                                 jax.ShapeDtypeStruct((2,), x.dtype), x) + 1.0
+
+    doubled = Primitive("driftbench_test_doubled")
+    doubled.def_abstract_eval(lambda a: a)
+    mlir.register_lowering(doubled, mlir.lower_fun(lambda a: a * 2.0, multiple_results=False))
+    for fn in (called_back, doubled.bind):
+        assert np.all(np.asarray(compile_lifted(fn, jnp.ones(2))(jnp.ones(2))) >= 2.0)
+    assert programs_in(by_content) == []
 
 
 def test_with_the_cache_off_nothing_is_kept(tmp_path):
