@@ -236,7 +236,14 @@ def _store(path: Path, record: tuple) -> None:
         with contextlib.suppress(OSError):
             os.unlink(temporary)
         return
-    _bound(path.parent, KEPT_MAX_BYTES)
+    # The folder is counted (every file's size) at this process's first write and again
+    # only when what it has written since would pass the bound: a count per write costs
+    # more than the write once the folder holds thousands of programs.
+    counted = _counted.get(path.parent)
+    if counted is None or counted + len(data) > KEPT_MAX_BYTES:
+        _counted[path.parent] = _bound(path.parent, KEPT_MAX_BYTES)
+    else:
+        _counted[path.parent] = counted + len(data)
 
 
 def _serialized(compiled, read: bytes | None) -> tuple | None:
@@ -315,9 +322,14 @@ def _lapack_ready() -> bool:
     return True
 
 
-def _bound(folder: Path, limit: int) -> None:
+#: Bytes of each folder of kept programs when this process last counted them
+#: (:func:`_bound`), with what it has written there since.
+_counted: dict[Path, int] = {}
+
+
+def _bound(folder: Path, limit: int) -> int:
     """Drop the least recently used programs of ``folder`` until they take at most
-    ``limit`` bytes."""
+    ``limit`` bytes; the bytes they then take."""
     entries = []
     for entry in os.scandir(folder):
         if not entry.name.endswith(".program"):
@@ -332,6 +344,7 @@ def _bound(folder: Path, limit: int) -> None:
         with contextlib.suppress(OSError):
             os.unlink(path)
             total -= size
+    return total
 
 
 _keeper: contextvars.ContextVar[_Keeper | None] = contextvars.ContextVar("keeper", default=None)

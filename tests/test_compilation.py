@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import os
+import pickle
 import subprocess
 import sys
 import time
@@ -116,6 +117,25 @@ def test_the_folder_is_bounded_by_dropping_the_least_recently_used(tmp_path):
         os.utime(p, (time.time() - age, time.time() - age))
     compiled._bound(tmp_path, 200)
     assert sorted(p.name for p in programs_in(tmp_path)) == ["1.program", "2.program"]
+
+
+def test_writes_keep_the_folder_bounded_though_it_is_counted_only_when_they_pass(
+        tmp_path, monkeypatch):
+    record = (b"x" * 1000,)
+    size = len(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+    monkeypatch.setattr(compiled, "KEPT_MAX_BYTES", 3 * size)
+    monkeypatch.setattr(compiled, "_counted", {})
+    counts = []
+    bound = compiled._bound
+    monkeypatch.setattr(compiled, "_bound", lambda *a: counts.append(1) or bound(*a))
+    for i in range(7):
+        compiled._store(tmp_path / f"{i}.program", record)
+        time.sleep(0.01)  # distinct times of use
+    # Counted at the first write, then at each that would pass three records: the 4th to
+    # the 7th; not at the 2nd and 3rd.
+    assert len(counts) == 5
+    assert sum(p.stat().st_size for p in programs_in(tmp_path)) <= 3 * size
+    assert (tmp_path / "6.program").exists()  # the newest stays
 
 
 def test_the_identity_holds_the_code_the_xla_flags_and_the_run(monkeypatch):
