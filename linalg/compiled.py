@@ -248,8 +248,8 @@ def _store(path: Path, record: tuple) -> None:
 
 def _serialized(compiled, read: bytes | None) -> tuple | None:
     """``(payload, in_tree, out_tree)`` of a compiled program, as :func:`_fetch` reads it;
-    ``read``: its executable as JAX's persistent cache held it (``None``: compiled here),
-    see :func:`_remember_cache_reads`. ``None`` where it cannot be serialized."""
+    ``read``: its executable as JAX's persistent cache read or wrote it (``None``: not
+    there), see :func:`_remember_cache_bytes`. ``None`` where it cannot be serialized."""
     from jax.experimental import serialize_executable
     try:
         if read is None:
@@ -259,37 +259,42 @@ def _serialized(compiled, read: bytes | None) -> tuple | None:
         return None
 
 
-#: The serialized executable that JAX's persistent cache last read in this thread.
+#: The serialized executable that JAX's persistent cache last read or wrote in this thread.
 _read = threading.local()
 
 
-def _remember_cache_reads() -> None:
-    """Have JAX's persistent cache leave the bytes of each executable it reads in
-    :data:`_read`.
+def _remember_cache_bytes() -> None:
+    """Have JAX's persistent cache leave the bytes of each executable it reads or writes
+    in :data:`_read`.
 
     An XLA:CPU executable loaded from serialized bytes cannot be serialized again (the
     copy lacks its kernels: "Function ... not found" when called), so a program that JAX's
-    cache served is kept from the bytes that cache read. JAX has no hook for this; its
-    function that splits a cache entry into executable and compile time is wrapped (once;
-    where it is missing, such programs are only not kept).
+    cache served is kept from the bytes that cache read; and one it compiled, from the
+    bytes the cache wrote, which spares serializing it a second time. JAX has no hook for
+    this; its functions that split a cache entry into executable and compile time and join
+    them are wrapped (once; where the first is missing, such programs are only not kept,
+    and where the second is, serialized again).
     """
     from jax._src import compilation_cache
-    split = getattr(compilation_cache, "extract_executable_and_time", None)
-    if split is None or getattr(split, "remembers", False):
-        return
+    for name in ("extract_executable_and_time", "combine_executable_and_time"):
+        original = getattr(compilation_cache, name, None)
+        if original is not None and not getattr(original, "remembers", False):
+            setattr(compilation_cache, name, _remembering(original, name.startswith("extract")))
 
-    def extract_executable_and_time(entry):
-        serialized, compile_time = split(entry)
-        _read.serialized = serialized
-        return serialized, compile_time
 
-    extract_executable_and_time.remembers = True
-    compilation_cache.extract_executable_and_time = extract_executable_and_time
+def _remembering(original: Callable, splits: bool) -> Callable:
+    def remembering(*args):
+        result = original(*args)
+        _read.serialized = result[0] if splits else args[0]
+        return result
+
+    remembering.remembers = True
+    return remembering
 
 
 def _serialize_as_read(compiled, serialized: bytes):
     """:func:`jax.experimental.serialize_executable.serialize` with the executable's bytes
-    as JAX's cache read them."""
+    as JAX's cache read or wrote them."""
     from jax.experimental import serialize_executable
 
     class Pickler(serialize_executable._JaxPjrtPickler):
@@ -359,7 +364,7 @@ def keeping(folder: Path | None, identity: str):
     keeps nothing.
     """
     if folder is not None:
-        _remember_cache_reads()
+        _remember_cache_bytes()
     token = _keeper.set(None if folder is None else _Keeper(Path(folder), identity))
     try:
         yield
@@ -387,7 +392,7 @@ def keep_by_content(folder: Path | None, salt: str = "") -> None:
     registered later (a plug-in's own primitive) has a lowering the hash does not cover.
     """
     if folder is not None:
-        _remember_cache_reads()
+        _remember_cache_bytes()
     _by_content[:] = [None if folder is None else Path(folder), salt,
                       frozenset() if folder is None else _jax_primitives()]
 
