@@ -458,8 +458,9 @@ def _calls_back(jaxpr) -> bool:
 def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
                    name: str = "", **static: Any) -> Lifted:
     """``jax.jit(fn).lower(*args, **static).compile()`` with the constants of at least
-    :data:`LIFT_BYTES` passed as arguments (module notes); inside :func:`keeping`, the
-    program kept by an earlier process is loaded instead, or this one kept.
+    :data:`LIFT_BYTES` passed as arguments (module notes); the program an earlier process
+    kept is loaded instead, or this one kept: by name inside :func:`keeping` (before
+    tracing), by content under :func:`keep_by_content` (after tracing).
 
     Parameters
     ----------
