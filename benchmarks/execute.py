@@ -46,10 +46,9 @@ from problems.source import located
 from problems.spec import ProblemSpec
 
 
-@functools.lru_cache(maxsize=8)
 def _case(problem: ProblemSpec):
-    # Cases are immutable: the runs of a worker share them, and with them the compiled
-    # functions keyed on their Mechanics (a step-size or tolerance sweep compiles once).
+    # problems.make keeps the case: the runs of a worker share it, and with it the compiled
+    # functions keyed on its Mechanics (a step-size or tolerance sweep compiles once).
     with compilation.kept_for(problem):
         return problems.make(problem)
 
@@ -63,7 +62,7 @@ def _lanes(problem: ProblemSpec, lanes: int, seed: int, first: int):
 
 def forget_cases() -> None:
     """Drop the cases this process keeps (a problem's definition was replaced)."""
-    _case.cache_clear()
+    problems.forget()
     _lanes.cache_clear()
     ensemble.forget()
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, ClassVar, NamedTuple
 
 import diffrax
@@ -42,6 +42,7 @@ import optimistix
 
 from integrators.base import Failure, Grid, Integrator, Trajectory
 from integrators.fixed import FixedStep
+from integrators.loop import CACHE_SIZE
 from integrators.record import Tally, ended, kept, series, series_names, tracker
 from linalg.compiled import compile_lifted, equations
 from problems.case import Case
@@ -408,6 +409,23 @@ def _trajectory(state: LoopState, tally: Tally, names: list[str], solver, contro
                  kept(tally.samp_t, tally.samp_q, tally.samp_v, tally.filled), **solver_record)
 
 
+def _aval(a: jax.Array) -> jax.ShapeDtypeStruct:
+    return jax.ShapeDtypeStruct(a.shape, a.dtype)
+
+
+@lru_cache(maxsize=CACHE_SIZE)
+def _compiled(grid: Grid, static: tuple, y0: jax.ShapeDtypeStruct, params: tuple):
+    """:func:`initial_state` and :func:`run_packed` compiled for the static arguments
+    ``static`` (as items) and arguments of the types ``y0`` and ``params`` (as items), and
+    the shapes of the loop's outputs; kept for the last :data:`CACHE_SIZE` of them, so that
+    a tolerance sweep, or another run of the same method, traces nothing again."""
+    static, params = dict(static), dict(params)
+    begin = compile_lifted(initial_state, y0, params, **static)
+    state0 = jax.eval_shape(partial(initial_state, **static), y0, params)
+    loop = compile_lifted(run_packed, state0, params, grid=grid, **static)
+    return begin, loop, jax.eval_shape(partial(run_one, grid=grid, **static), state0, params)
+
+
 def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: dict,
           max_steps: int, sampling: str, linear_solver: str = "auto"):
     """Compile the loop (:func:`run`) and return ``solve()``, which runs it from ``y0``
@@ -415,9 +433,9 @@ def drive(mech: Mechanics, grid: Grid, y0: np.ndarray, solver, control, params: 
     params, static, solver_record = _static(mech, params, max_steps, solver, control,
                                             linear_solver)
     y0_device = jnp.asarray(y0)
-    state0 = compile_lifted(initial_state, y0_device, params, **static)(y0_device, params)
-    compiled = compile_lifted(run_packed, state0, params, grid=grid, **static)
-    like = jax.eval_shape(partial(run_one, grid=grid, **static), state0, params)
+    begin, compiled, like = _compiled(grid, tuple(static.items()), _aval(y0_device),
+                                      tuple((k, _aval(v)) for k, v in params.items()))
+    state0 = begin(y0_device, params)
     names = series_names(mech)
 
     def solve():

@@ -13,7 +13,9 @@ among them) and its traits, which supplies three pure functions of arrays,
 
 ``mech`` (:class:`problems.mechanics.Mechanics`) and ``schur`` (the solver for
 ``G M^{-1} G^T`` that :meth:`FixedStep.linear_algebra` picks) are fixed for a run; the
-arrays are the only things that change. The one shared :meth:`FixedStep.prepare` checks
+arrays are the only things that change. ``h`` reaches the functions as ``step``'s argument
+only (``start`` and ``step`` do not read the option), so the compiled ``start`` and time
+loop serve every step size. The one shared :meth:`FixedStep.prepare` checks
 the options, picks the linear algebra, compiles ``start`` once and hands ``step`` and
 ``observe`` to the compiled time loop (:func:`integrators.loop.march`); :class:`Stepper`
 drives the same functions by hand.
@@ -27,14 +29,14 @@ compiled time loop for every lane, ``step`` mapped over them (``jax.vmap``).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from integrators.base import COUNTERS, Failure, Grid, Integrator
-from integrators.loop import WORK, attempt, march
+from integrators.loop import CACHE_SIZE, WORK, attempt, march
 from linalg.compiled import compile_lifted
 from linalg.schur import DENSE_MAX
 from problems.case import Case
@@ -104,9 +106,10 @@ class FixedStep(Integrator):
         self.check()
         mech = case.mech
         schur = self.linear_algebra(mech)
-        # Compiled once; run eagerly, each autodiff operation would compile on its own.
         args = (jnp.asarray(case.q0), jnp.asarray(case.v0), jnp.asarray(grid.t0, jnp.float64))
-        carry0 = compile_lifted(partial(self.start, mech, schur), *args)(*args)
+        like = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args)
+        # Keyed as the loop is (march), without h: the step size is an argument of step.
+        carry0 = _start(replace(self, h=None), mech, schur, like)(*args)
         return self._march(mech, schur, grid, carry0, lanes=False)
 
     def prepare_ensemble(self, case: Case, grid: Grid, q0s, v0s):
@@ -124,6 +127,14 @@ class FixedStep(Integrator):
         return march(mech, grid, self.h, carry0, partial(self.step, mech, schur),
                      partial(self.observe, mech), key=replace(self, h=None),
                      linear_solver=schur.name, pattern_nnz=schur.nnz, lanes=lanes)
+
+
+@lru_cache(maxsize=CACHE_SIZE)
+def _start(method: FixedStep, mech: Mechanics, schur, like: tuple[jax.ShapeDtypeStruct, ...]):
+    """``method.start`` compiled for arguments of the types ``like``, kept for the last
+    :data:`~integrators.loop.CACHE_SIZE` methods: run eagerly, each autodiff operation
+    would compile on its own."""
+    return compile_lifted(partial(method.start, mech, schur), *like)
 
 
 class State(NamedTuple):

@@ -65,7 +65,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 #: Constants of at least this many bytes become arguments.
@@ -106,9 +105,10 @@ def device_index(a) -> jax.Array:
     """An index array on the device, as ``int32``, made once: a concrete array even when
     first asked for inside a trace (it is cached and used by later traces, so a tracer
     there would leak into them), and one constant for every program that reads it (a copy
-    per call would be a constant per call site)."""
+    per call would be a constant per call site). Put on the device as it is: ``jnp.asarray``
+    would compile a copying program for each new shape."""
     with jax.ensure_compile_time_eval():
-        return jnp.asarray(np.asarray(a, dtype=np.int32))
+        return jax.device_put(np.asarray(a, dtype=np.int32))
 
 
 class Lifted:
@@ -192,7 +192,7 @@ class _Keeper:
         if kept is None or len(kept[2]) != 2:
             return None
         _, compiled, (values, result_tree) = kept
-        return Lifted(compiled, [jnp.asarray(v) for v in values], result_tree)
+        return Lifted(compiled, [jax.device_put(v) for v in values], result_tree)
 
     def save(self, path: Path, executable: tuple, values: list[jax.Array], result_tree) -> None:
         """Write the program: ``executable`` as :func:`_serialized` gives it."""
@@ -502,9 +502,9 @@ def compile_lifted(fn: Callable, *args: Any, donate: tuple[int, ...] = (),
         same = next((k for k, v in enumerate(values)
                      if v.shape == c.shape and v.dtype == c.dtype
                      and getattr(v, "weak_type", False) == getattr(c, "weak_type", False)
-                     and bool(jnp.array_equal(v, c))), None)
+                     and np.array_equal(v, c)), None)
         if same is None:
-            values.append(jnp.asarray(c))
+            values.append(jax.device_put(c))
             same = len(values) - 1
         slots[i] = same
         consts[i] = None  # not kept: the copies go with the trace

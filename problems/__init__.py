@@ -28,6 +28,7 @@ import inspect
 import sys
 import sysconfig
 import traceback
+from collections import OrderedDict
 from importlib import metadata
 from pathlib import Path
 from typing import Callable
@@ -199,10 +200,39 @@ def at_horizon(spec: str | ProblemSpec, t_end: float | None) -> ProblemSpec:
     return dataclasses.replace(spec, arguments=tuple(arguments.items()))
 
 
+#: Cases kept for reuse (:func:`make`), the most recently used last.
+KEPT_CASES = 8
+_cases: OrderedDict = OrderedDict()
+
+
 def make(spec: str | ProblemSpec, **overrides) -> Case:
-    """Build the case of ``spec`` (a spec string, or resolved by :func:`resolve`)."""
+    """The case of ``spec`` (a spec string, or resolved by :func:`resolve`), with the
+    factory's parameters ``overrides`` replaced.
+
+    Cases are immutable, so the last :data:`KEPT_CASES` are kept, by factory and
+    parameters, and a later call with the same ones returns the same case: with it the
+    functions compiled for its :class:`Mechanics` (a step-size sweep, another method's
+    run or another test of the same problem traces and compiles nothing again).
+    """
     spec = resolve(spec)
-    return REGISTRY[spec.name](**{**spec.kwargs, **overrides})
+    factory = REGISTRY[spec.name]
+    arguments = {**spec.kwargs, **overrides}
+    key = (factory, tuple(sorted((k, type(v), v) for k, v in arguments.items())))
+    try:
+        case = _cases.pop(key)
+    except KeyError:
+        case = factory(**arguments)
+    except TypeError:  # an unhashable override: built afresh, not kept
+        return factory(**arguments)
+    _cases[key] = case
+    while len(_cases) > KEPT_CASES:
+        _cases.popitem(last=False)
+    return case
+
+
+def forget() -> None:
+    """Drop the cases :func:`make` keeps."""
+    _cases.clear()
 
 
 def check_size(spec: str | ProblemSpec) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import lru_cache, partial
 from typing import Callable, Mapping
 
 import jax
@@ -207,10 +207,19 @@ def residuals(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float) -> tuple[
     """Max-norms of ``g(q, t)`` and ``G v + g_t``."""
     f64 = jnp.float64
     args = (jnp.asarray(q, f64), jnp.asarray(v, f64), jnp.asarray(t, f64))
-    # One compiled function: evaluated eagerly, the autodiff Jacobian in ``vel_residual``
-    # compiles each of its dozens of primitive operations on its own (seconds per case).
-    pos, vel = compile_lifted(partial(_residuals, mech), *args)(*args)
+    pos, vel = _residuals_of(mech, args[0].shape, args[1].shape)(*args)
     return float(pos), float(vel)
+
+
+@lru_cache(maxsize=16)
+def _residuals_of(mech: Mechanics, q_shape: tuple[int, ...], v_shape: tuple[int, ...]):
+    # One compiled function, kept for the mechanics' later cases: evaluated eagerly, the
+    # autodiff Jacobian in ``vel_residual`` compiles each of its dozens of primitive
+    # operations on its own (seconds per case).
+    f64 = jnp.float64
+    like = (jax.ShapeDtypeStruct(q_shape, f64), jax.ShapeDtypeStruct(v_shape, f64),
+            jax.ShapeDtypeStruct((), f64))
+    return compile_lifted(partial(_residuals, mech), *like)
 
 
 def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
@@ -250,9 +259,11 @@ def project(mech: Mechanics, q: np.ndarray, v: np.ndarray, t: float,
 PROJECT_WIDTH = 256
 
 
+@lru_cache(maxsize=16)
 def _projector(mech: Mechanics, shape: tuple[int, ...], tol: float, max_iter: int):
     """``(q, v, t) -> (q, v)`` projected (:func:`project`), for states of ``shape`` (one
-    state, or a batch on the leading axis), compiled once for all calls."""
+    state, or a batch on the leading axis), compiled once for all calls and kept for
+    later ones (an ensemble's lanes, the cases of one mechanics)."""
     schur = mech.schur("auto")
     step, g = _projection_step(mech, schur), mech.g
     residual = mech.vel_residual
