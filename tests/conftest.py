@@ -7,7 +7,9 @@ and the ``slow`` marker's meaning.
 
 ``make test`` runs everything. ``pytest -m "not slow"`` is the quick subset: it leaves out
 the long verification runs (long horizons, large problems, whole studies) and the tests
-that start process pools, clusters or whole suites in subprocesses.
+that start process pools, clusters, drawing processes, compiled yardsticks or whole suites
+in subprocesses, but for the short end-to-end checks of a user's mistakes (one line, exit
+status 2, results kept), which a contributor should see fail first.
 
 The tests compile through the same persistent cache as the suite
 (:mod:`benchmarks.compilation`: ``$DRIFTBENCH_COMPILE_CACHE``, else the per-user folder),

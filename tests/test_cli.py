@@ -74,6 +74,7 @@ def integrity(db: Path) -> str:
         return con.execute("PRAGMA integrity_check").fetchone()[0]
 
 
+@pytest.mark.slow
 def test_bad_input_exits_2_with_one_line_and_no_traceback(tmp_path):
     proc = start(["--problems", "pendulm", "--integrators", "rattle"], tmp_path / "out",
                  uuid.uuid4().hex, subprocess.PIPE)

@@ -40,6 +40,7 @@ def declared(tmp_path):
         columns.withdraw(NAME)
 
 
+@pytest.mark.slow
 def test_a_declared_metric_reaches_runs_csv_the_store_the_gate_and_the_report(
         tmp_path, declared, monkeypatch):
     monkeypatch.setenv(CODE_VERSION_ENV, "test-version")

@@ -163,6 +163,7 @@ def test_a_cache_is_cold_without_entries_for_this_version(tmp_path):
     assert str(tmp_path) in note and "--compile-cache" in note and compilation.ENV in note
 
 
+@pytest.mark.slow
 def test_bad_input_on_a_cold_cache_gets_its_one_line_alone(tmp_path):
     # The step limit is checked while the runs are validated, after the cache was found
     # cold: the first-run note waits for the runs to start, and none starts.
@@ -311,6 +312,7 @@ def test_calls_back_and_primitives_registered_later_are_not_kept_by_content(by_c
     assert programs_in(by_content) == []
 
 
+@pytest.mark.slow
 def test_with_the_cache_off_nothing_is_kept(tmp_path):
     rows = cli_run(tmp_path / "off", Path("off"), "--integrators", "rattle", "--h", "0.05")
     assert rows["rattle"]["setup_cache"] == "off"

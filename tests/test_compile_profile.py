@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from benchmarks.perf.compile_profile import program_name
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -17,6 +19,7 @@ def test_a_programs_three_phases_go_under_one_name():
     assert program_name("run") == program_name("jit_run") == program_name("jit(run)") == "run"
 
 
+@pytest.mark.slow
 def test_the_profile_gives_each_programs_phases_and_the_cpu_time_of_set_up_and_solves(
         tmp_path):
     # A fresh process: the profile sets XLA's flags, which JAX reads once, at its start.

@@ -38,6 +38,7 @@ def test_subcommand_options_pass_through():
     assert exit_.value.code == 2
 
 
+@pytest.mark.slow
 def test_installed_script_runs():
     script = Path(sys.executable).with_name("driftbench")
     if not script.exists():

@@ -28,6 +28,7 @@ def baumgarte_rk(tmp_path_factory):
     return exe
 
 
+@pytest.mark.slow
 @needs_cc
 @pytest.mark.parametrize("problem", ["pendulum", "double-pendulum"])
 def test_baumgarte_yardstick_ends_where_our_runs_end(baumgarte_rk, problem):

@@ -21,6 +21,7 @@ from helpers import needs_cc
 HORIZONS = {"pendulum": 1.0, "andrews": 0.003}
 
 
+@pytest.mark.slow
 @needs_cc
 @pytest.mark.parametrize("problem, family, thet", [
     ("pendulum", "radau5", None), ("pendulum", "radau5", -1.0), ("pendulum", "radau5-ggl", None),
@@ -52,6 +53,7 @@ def test_radau_yardstick_ends_where_our_run_ends(tmp_path, problem, family, thet
     assert max(dq, dv) <= 10 * rtol
 
 
+@pytest.mark.slow
 @needs_cc
 @pytest.mark.parametrize("problem", ["pendulum", "andrews"])
 @pytest.mark.parametrize("family", ["ida-ggl", "ida-index1"])

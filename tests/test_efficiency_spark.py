@@ -33,6 +33,7 @@ def test_spark_yardstick_has_the_suites_tableau():
         assert theirs == np.ravel(ours).tolist(), name
 
 
+@pytest.mark.slow
 @needs_cc
 def test_spark_yardstick_ends_where_lobatto3ab3_ends(tmp_path):
     # h = 0.003 does not divide t_end = 1: both must step on the suite's shrunk grid

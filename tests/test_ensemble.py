@@ -482,6 +482,7 @@ def test_the_ensemble_benchmark_sets_itself_up_as_a_worker_before_it_computes():
     assert "note: XLA started before" not in done.stderr
 
 
+@pytest.mark.slow
 def test_failed_lanes_are_recorded_and_kept_out_of_the_worst_lane_and_the_verdicts(tmp_path):
     """RATTLE at h = 0.22 on the pendulum loses most of 16 lanes before t = 20: the record's
     worst-lane metrics are over the lanes that finished, all alike (max energy error too),

@@ -40,6 +40,7 @@ def test_the_example_passes_the_catalogue(check):
     getattr(catalogue, check)(KEY)
 
 
+@pytest.mark.slow
 def test_the_example_runs_from_the_command_line(tmp_path, monkeypatch):
     monkeypatch.setenv(CODE_VERSION_ENV, "test-version")
     args = ["--load", str(EXAMPLE), "--problems", "pendulum", "--integrators", KEY,

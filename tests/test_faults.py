@@ -228,6 +228,7 @@ def test_a_failed_write_on_a_full_disk_leaves_the_old_file_and_no_temporary(tmpf
     assert sorted(p.name for p in folder.iterdir()) == ["filler", "runs.csv"]
 
 
+@pytest.mark.slow
 def test_a_store_that_fails_midway_loses_no_run_from_runs_csv(tmp_path, capsys, monkeypatch):
     def full(self, session, record):
         raise sqlite3.OperationalError("database or disk is full")
@@ -261,6 +262,7 @@ def test_a_second_invocation_on_a_folder_in_use_is_refused(tmp_path, capsys):
     assert (out / "runs.csv").read_text() == "the other invocation's rows\n"
 
 
+@pytest.mark.slow
 def test_duplicate_runs_run_once(tmp_path):
     out = tmp_path / "out"
     # The same run three times: twice as written, once with its default parameter spelled out.
@@ -373,6 +375,7 @@ def test_ctrl_c_during_validation_exits_130(tmp_path):
     assert "interrupted (SIGINT): no run had finished" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_the_report_is_written_keeps_the_runs_and_exits_130(
         tmp_path, monkeypatch, capsys):
     """The signal handlers stay in place until the report is written: an interrupt there

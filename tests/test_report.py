@@ -207,6 +207,7 @@ def test_the_report_stage_imports_no_integrator():
     assert out.stdout.strip() == "[]"
 
 
+@pytest.mark.slow
 def test_a_version_1_store_still_gives_a_report(tmp_path):
     """Old stores load through the migration; what they lack shows as 'n/a', not a crash."""
     from test_store import write_v1
@@ -219,6 +220,7 @@ def test_a_version_1_store_still_gives_a_report(tmp_path):
     assert "| rattle | h=0.01 | 10 | ok | 1000 | n/a |" in md.read_text()
 
 
+@pytest.mark.slow
 def test_a_300_character_problem_spec_names_bounded_files(tmp_path):
     """Figure files are named from problem specs: a long spec gets a bounded, sanitised name
     with a hash of the full spec, and every later report of that store builds too."""
@@ -288,6 +290,7 @@ def test_timing_spread_and_targets_are_printed(report):
     assert "pendulum: accuracy targets" in problem and "cheapest by evaluations" in problem
 
 
+@pytest.mark.slow
 def test_the_reference_floor_replaces_errors_below_it(tmp_path):
     """A final error within the reference's accuracy is not given as the method's error."""
     db = tmp_path / "driftbench.sqlite"
@@ -302,6 +305,7 @@ def test_the_reference_floor_replaces_errors_below_it(tmp_path):
     assert "too few points above the reference floor" in md
 
 
+@pytest.mark.slow
 def test_a_problem_without_errors_to_plot_gets_a_sentence_not_an_empty_convergence_figure(
         tmp_path):
     """One fixed-step run without a reference is its own reference: nothing to plot."""
@@ -334,6 +338,7 @@ def test_bad_command_line_input_is_one_line_and_exit_2(tmp_path, capsys):
         assert err.startswith("error: ") and err.count("\n") == 1, err
 
 
+@pytest.mark.slow
 def test_work_precision_axes_follow_the_command_line(tmp_path):
     from reports.__main__ import main
 
@@ -372,6 +377,7 @@ def test_a_drift_figure_draws_a_run_that_blew_up():
     assert svg.lstrip().startswith("<") and "</svg>" in svg
 
 
+@pytest.mark.slow
 def test_figures_drawn_in_worker_processes_equal_those_drawn_here():
     """The report's figures are drawn side by side in spawned processes (``Drawing``): the
     same SVG text as drawn in this process, and a figure that raises raises where its SVG
@@ -419,6 +425,7 @@ def order_table(md: str, problem: str) -> dict[str, list[str]]:
     return {c[0]: c[1:] for c in cells}
 
 
+@pytest.mark.slow
 def test_orders_are_fitted_over_the_asymptotic_range_and_say_so(tmp_path):
     """A pre-asymptotic coarse point is left out and named; two pairwise orders that
     disagree (3.10 then 1.89) give no order rather than their average; in both reports."""

@@ -28,6 +28,7 @@ def test_a_suite_sets_its_accuracy_targets(tmp_path):
         suites.load(str(path))
 
 
+@pytest.mark.slow
 def test_the_command_line_report_uses_the_suite_targets(tmp_path):
     """A suite's ``targets`` reach the report that ``benchmarks.run`` builds."""
     from benchmarks import run

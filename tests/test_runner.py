@@ -163,6 +163,7 @@ def test_runs_of_one_problem_and_method_stay_on_one_worker():
     assert [pick(queue, "a-done", {"b"}).id for _ in range(3)] == [2, 0, 3]
 
 
+@pytest.mark.slow
 def test_the_linear_solver_and_pattern_size_are_recorded(tmp_path):
     import csv
 

@@ -70,6 +70,7 @@ def rigid_yardstick(tmp_path_factory):
     return compiled("rattle_rigid_chain", tmp_path_factory)
 
 
+@pytest.mark.slow
 def test_rigid_c_yardstick_agrees_with_rattle_s_structured_step(rigid_yardstick):
     """100 steps of h = 5e-4 on rigid-chain:N=4: the C program's closed-form mass inverse,
     kinetic-energy gradient, Jacobian and block Cholesky against rattle's structured path
@@ -266,6 +267,7 @@ def test_peak_memory_is_the_program_s_own_not_its_parent_s():
     assert int(out.split()[-1]) < 100 << 20
 
 
+@pytest.mark.slow
 def test_like_a_worker_sets_xla_flags_only_before_the_first_computation(monkeypatch, capsys):
     """A fresh process gets the workers' flags (the one-kernel flag among them); one that
     has computed keeps its own, which XLA read at its start and the persistent cache's keys
@@ -366,6 +368,7 @@ def test_processes_run_each_point_in_rounds(tmp_path, capsys):
     assert "each point in 2 fresh processes" in (tmp_path / "scaling.md").read_text()
 
 
+@pytest.mark.slow
 def test_the_report_gets_the_scaling_section(tmp_path, capsys):
     from dataclasses import asdict
 

@@ -42,6 +42,7 @@ def test_unguarded_script_finishes_and_writes_its_report(tmp_path):
     assert done.stdout.count(" ok ") == 2, done.stdout
 
 
+@pytest.mark.slow
 def test_a_drawing_process_that_dies_fails_its_figure_and_the_next_is_drawn():
     """A drawing worker that dies fails the figure it was drawing, with its exit code,
     where that figure is read; the next figure gets a fresh worker."""

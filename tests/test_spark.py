@@ -10,6 +10,8 @@ import problems
 from benchmarks.execute import execute
 from benchmarks.records import RunSpec
 from integrators import Grid
+from integrators.newton import deferred_fallback
+from linalg.compiled import compile_lifted
 
 SPARK = ["rattle", "lobatto3ab2", "lobatto3ab3", "lobatto3ab4"]
 
@@ -77,15 +79,20 @@ def test_the_carried_velocity_and_mass_factors_are_those_of_the_carried_state(ke
     # Both methods carry v = H_p(q, p) and the factors of a block-diagonal M(q) from one
     # step to the next rather than compute them again: they must be those of the (q, p)
     # carried with them (a stale v or factor would pass unnoticed by the step itself).
+    # Andrews' mechanism is stiff: at h = 1e-3 its simplified Newton needs the exact
+    # Jacobian within four steps. Without it (deferred_fallback) the step is a far smaller
+    # program, which is all these steps need.
     case = problems.make(problem)
-    mech, h = case.mech, 1e-3
+    mech, h = case.mech, 1e-4 if problem == "andrews" else 1e-3
     method = integrators.make(key, h=h)
     schur = method.linear_algebra(mech)
     state = method.start(mech, schur, jnp.asarray(case.q0), jnp.asarray(case.v0),
                          jnp.float64(case.t0))
-    step = jax.jit(lambda state, t: method.step(mech, schur, state, t, h))
+    with deferred_fallback():
+        step = compile_lifted(lambda state, t: method.step(mech, schur, state, t, h),
+                              state, jnp.float64(case.t0))
     for k in range(5):
-        state, code, _, _ = step(state, case.t0 + k * h)
+        state, code, _, _ = step(state, jnp.float64(case.t0 + k * h))
         assert int(code) == 0
     q, v = method.observe(mech, state)
     v_of_p = mech.H_p(q, state[1])

@@ -54,6 +54,7 @@ def test_the_examples_run_with_every_family_and_meet_their_references(tmp_path):
     assert "Problem: slider-crank" in html and "Problem: spherical-pendulum" in html
 
 
+@pytest.mark.slow
 def test_the_command_line_and_the_python_api_agree_bit_for_bit(tmp_path, capsys):
     args = ["--load", SLIDER, "--problems", "slider-crank", "--integrators", "rattle",
             "--h", "0.02", "--t-end", "1", "--jobs", "1", "--repeats", "1", "--no-report"]
@@ -69,6 +70,7 @@ def test_the_command_line_and_the_python_api_agree_bit_for_bit(tmp_path, capsys)
     assert float(cli["max_pos_residual"]) == api["max_pos_residual"].iloc[0]
 
 
+@pytest.mark.slow
 def test_a_case_object_runs_and_its_name_may_not_shadow_a_problem(tmp_path):
     problems.load(SPHERE)
     case = problems.make("spherical-pendulum:spin=1.2")
@@ -102,6 +104,7 @@ def test_a_suite_loads_files_relative_to_itself(tmp_path):
     assert problems.origin("crank-2") == loaded.load[0]
 
 
+@pytest.mark.slow
 def test_an_installed_package_registers_through_its_entry_point(tmp_path):
     site = tmp_path / "site"
     (site / "fancy_mechanisms-1.0.dist-info").mkdir(parents=True)
@@ -199,6 +202,7 @@ def test_malformed_user_files_are_refused_naming_the_file(text, name, words, tmp
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_an_error_in_user_code_during_a_run_costs_that_run_alone(tmp_path, capsys):
     path = tmp_path / "drive.py"
     # A drive torque from NumPy code through a callback: it passes the audit (evaluated

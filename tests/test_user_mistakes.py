@@ -268,6 +268,7 @@ def test_make_case_refuses_its_arguments_at_the_call():
         assert str(caught.value).startswith(f"{__file__}:{inspect.getsourcelines(make)[1]}: ")
 
 
+@pytest.mark.slow
 def test_a_sweep_whose_every_run_ends_error_exits_1_and_keeps_earlier_results(
         earlier, tmp_path, capsys):
     out = tmp_path / "out"

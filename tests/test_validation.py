@@ -195,6 +195,7 @@ def test_a_suites_ensembles_take_the_seed_and_its_single_runs_stay_single(tmp_pa
     assert [(r.lanes, r.seed) for r in runs] == [(8, 0), (8, 1)]
 
 
+@pytest.mark.slow
 def test_the_python_api_takes_one_name_or_number_alone_and_names_a_bad_setting():
     from benchmarks.api import sweep
     from benchmarks.records import InputError
