@@ -138,6 +138,32 @@ def test_writes_keep_the_folder_bounded_though_it_is_counted_only_when_they_pass
     assert (tmp_path / "6.program").exists()  # the newest stays
 
 
+def test_jax_cache_writes_keep_it_bounded_though_it_is_counted_only_when_they_pass(
+        tmp_path, monkeypatch):
+    # JAX's own cache counts every entry's size and last use at every write.
+    from jax._src import compilation_cache, lru_cache
+    full, scans = [], []
+    evict, entry_bytes = lru_cache.LRUCache._evict_if_needed, compilation._entry_bytes
+    monkeypatch.setattr(lru_cache.LRUCache, "_evict_if_needed",
+                        lambda self, **kw: full.append(1) or evict(self, **kw))
+    monkeypatch.setattr(compilation, "_entry_bytes", lambda w: scans.append(1) or entry_bytes(w))
+    cache = compilation.CountedCache(str(tmp_path), max_size=10_000)
+    for i in range(14):
+        cache.put(f"k{i}", b"x" * 1000)
+        assert sum(p.stat().st_size for p in tmp_path.glob("*-cache")) <= 10_000
+        time.sleep(0.01)  # distinct times of use
+        if i == 5:
+            assert cache.get("k0") is not None  # k0 used after k5 was written
+        if i == 10:  # the first write past the bound: down to 9 entries with it
+            left = sorted(int(p.name[1:-6]) for p in tmp_path.glob("*-cache"))
+            assert left == [0, *range(3, 11)]
+    # Counted at the first write (one scan), and twice at each write past the bound (the
+    # 11th and the 13th, each then counted in full for the least recently used).
+    assert len(scans) == 5 and len(full) == 2
+    # The cache of every process that enables it is this one.
+    assert compilation_cache.LRUCache is compilation.CountedCache
+
+
 def test_the_identity_holds_the_code_the_xla_flags_and_the_run(monkeypatch):
     base = compilation.identity("pendulum", 0.01)
     assert compilation.identity("pendulum", 0.01) == base
