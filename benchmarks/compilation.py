@@ -310,7 +310,7 @@ def _files(where: Path):
 
 def _entry(path: Path) -> bool:
     """Whether a file is an entry: one of JAX's executables or a kept program."""
-    return path.name.endswith(("-cache", ".program"))
+    return path.name.endswith((lru_cache._CACHE_SUFFIX, ".program"))
 
 
 def size(where: Path) -> tuple[int, int]:
