@@ -409,13 +409,13 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
           pattern_nnz: int | None = None, lanes: bool = False) -> Callable:
     """Compile the time loop (or reuse it) and return ``solve()``.
 
-    One trajectory's loop is compiled with the exact-Jacobian fallback of the structured
-    Newton solves left out (:func:`integrators.newton.deferred_fallback`), which is most of
-    its program and rarely needed. Where a step of that loop fails and the step has such a
-    fallback, the loop with it is compiled (once, then reused like the other) and continues
-    from that step, so the run's result is that of the loop with the fallback throughout:
-    the same steps up to the one that failed, which it takes again, and the same work
-    counted (the failed attempt's is not). An ensemble's loop is compiled without the
+    One trajectory's loop is compiled with the exact-Jacobian fallback of simplified
+    Newton left out (:func:`integrators.newton.deferred_fallback`), which is up to most of
+    its program and rarely needed. Where a step of that loop fails, the loop with the
+    fallback is compiled (once, then reused like the other) and continues from that step,
+    so the run's result is that of the loop with the fallback throughout: the same steps
+    up to the one that failed, which it takes again, and the same work counted (the
+    failed attempt's is not). An ensemble's loop is compiled without the
     fallback too, and the lanes that failed in it go on with it from the steps they failed
     at, as an ensemble of their own (its loop starts at the first of those steps, and each
     lane waits until the loop reaches its own: :func:`_loop`). An ensemble compiled with
@@ -489,11 +489,13 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
             _LOOPS.move_to_end(tag)
         return loop
 
-    # Only the structured paths' Newton solves have a fallback (integrators.newton): the
-    # dense path's loop is the same with or without it. Decided here, not by the trace,
-    # since a loop kept on disk is loaded untraced (linalg.compiled).
-    deferred = linear_solver != "dense"
-    begin, run, shape = compiled_loop(fallback=not deferred)
+    # Every path's loop is compiled without the fallback first: the structured paths'
+    # simplified Newton and the dense path's from FROZEN_MIN unknowns on both have one
+    # (integrators.newton). Where a method has none, both loops are one program, and the
+    # second is compiled (from the persistent cache) only for a run that fails. Decided
+    # here, not by the trace, since a loop kept on disk is loaded untraced
+    # (linalg.compiled).
+    begin, run, shape = compiled_loop(fallback=False)
     names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
     # The rows the plan uses, and only those (to the next power of two), reach the host.
@@ -574,7 +576,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         state, E0, I0 = begin(carry0, *buffers)
         state, qv = run(state, E0, I0, *args)
         out = fetch(state, qv)
-        if deferred and np.any(out[1] != 0):
+        if np.any(out[1] != 0):
             state, qv = retake(state, qv, E0, I0, out[1])
             out = fetch(state, qv)
         spare.append(state[6:8])

@@ -68,11 +68,12 @@ def deferred_fallback() -> Iterator[None]:
     """Trace :func:`newton` without the exact-Jacobian fallback of simplified Newton inside
     this block: where simplified Newton does not converge, the solve fails.
 
-    The fallback (:func:`krylov_linear`) is most of a structured time loop's program and is
-    rarely taken, and it is most of XLA's compilation time of such a loop (``python -m
-    benchmarks.perf.compile_profile`` measures it). So the time loop compiles its steps
-    this way first, and the loop with the fallback only when a step fails, continuing from
-    that step (:func:`integrators.loop.march`)."""
+    The fallback (:func:`krylov_linear` on the structured paths, :func:`dense_linear`
+    after :func:`frozen_linear`) is rarely taken, and it is up to most of a time loop's
+    program and of XLA's compilation time (``python -m benchmarks.perf.compile_profile``
+    measures it). So the time loop compiles its steps this way first, and the loop with
+    the fallback only when a step fails, continuing from that step
+    (:func:`integrators.loop.march`)."""
     token = _deferred.set(True)
     try:
         yield

@@ -95,7 +95,7 @@ def test_sigkill_midway_then_resume_loses_and_redoes_nothing(tmp_path):
     suite.write_text('[[group]]\nproblems = ["pendulum"]\n'
                      'integrators = ["rattle", "lobatto3ab2", "lobatto3ab3"]\nh = [0.1]\n'
                      't_end = 0.5\n\n[[group]]\nproblems = ["pendulum"]\n'
-                     'integrators = ["test-hang"]\nh = [0.1]\nt_end = 0.5\ntimeout = 4\n')
+                     'integrators = ["test-hang"]\nh = [0.1]\nt_end = 0.5\ntimeout = 2\n')
     args = ["--suite", str(suite), "--jobs", "1"]
     log = tmp_path / "first.log"
     with open(log, "w") as fh:

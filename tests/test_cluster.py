@@ -66,7 +66,7 @@ def integrity(db: Path) -> str:
 
 
 def test_a_local_cluster_isolates_faults_and_matches_the_local_pool(tmp_path):
-    specs = [HEALTHY[0], RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
+    specs = [HEALTHY[0], RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=5.0),
              RunSpec("pendulum", "test-kill", 0.1, t_end=1.0), HEALTHY[1]]
     before = children()
     records = run_specs(specs, tmp_path / "dask", cluster="local:2", timeout=300.0,
@@ -77,8 +77,10 @@ def test_a_local_cluster_isolates_faults_and_matches_the_local_pool(tmp_path):
     assert status == {"rattle": "ok", "test-hang": "timeout", "test-kill": "error",
                       "lobatto3ab2": "ok"}
     message = {r.row["integrator"]: r.row["message"] for r in records}
-    # 15 s: a fresh pool process on a Dask worker takes seconds to build the case.
-    assert "time limit of 15 s" in message["test-hang"]
+    # 5 s: the limit counts from the hand-over to a started pool process, where building
+    # the pendulum took under 0.3 s (measured with a cold compile cache); the batch waits
+    # for this limit, so it is kept short.
+    assert "time limit of 5 s" in message["test-hang"]
     assert "SIGKILL" in message["test-kill"]
     db = tmp_path / "dask" / "driftbench.sqlite"
     assert integrity(db) == "ok" and len(load_runs(db)) == len(specs)
@@ -152,7 +154,7 @@ def test_a_scheduler_and_workers_survive_a_killed_worker_and_resume(tmp_path, sc
         '[[group]]\nproblems = ["pendulum"]\nintegrators = ["rattle", "lobatto3ab2"]\n'
         'h = [0.1, 0.05]\nt_end = 1.0\n\n'
         '[[group]]\nproblems = ["pendulum"]\nintegrators = ["test-hang"]\nh = [0.1]\n'
-        't_end = 1.0\ntimeout = 10\n')
+        't_end = 1.0\ntimeout = 2\n')
     command = [sys.executable, "-m", "benchmarks.run", "--suite", str(suite), "--cluster",
                address, "--out", str(out), "--no-report"]
     log = open(tmp_path / "first.log", "w")

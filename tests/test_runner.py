@@ -42,7 +42,7 @@ HEALTHY = [RunSpec("pendulum", "rattle", 0.05, t_end=1.0),
 
 @pytest.mark.slow
 def test_faults_are_contained_and_healthy_runs_match_a_serial_run(tmp_path):
-    faulty = [RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=15.0),
+    faulty = [RunSpec("pendulum", "test-hang", 0.1, t_end=1.0, timeout=5.0),
               RunSpec("pendulum", "test-kill", 0.1, t_end=1.0),
               RunSpec("pendulum", "test-abort", 0.1, t_end=1.0),
               RunSpec("pendulum", "test-raise", 0.1, t_end=1.0),
@@ -56,8 +56,10 @@ def test_faults_are_contained_and_healthy_runs_match_a_serial_run(tmp_path):
                       "test-abort": "error", "test-raise": "error", "test-nan": "failed",
                       "lobatto3ab3": "ok"}
     message = {r.row["integrator"]: r.row["message"] for r in records}
-    # 15 s: building a case in a fresh worker takes seconds on a loaded machine.
-    assert "time limit of 15 s during solve" in message["test-hang"]
+    # 5 s: the limit counts from the hand-over to a started worker, and building the
+    # pendulum there took under 0.3 s (measured with a cold compile cache); the batch waits
+    # for this limit, so it is kept short.
+    assert "time limit of 5 s during solve" in message["test-hang"]
     assert "SIGKILL" in message["test-kill"] and "SIGABRT" in message["test-abort"]
     assert "injected fault in solve" in message["test-raise"]
     assert "not finite" in message["test-nan"]

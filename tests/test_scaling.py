@@ -311,9 +311,16 @@ def test_a_family_that_fails_stops_and_an_error_exits_1(tmp_path, monkeypatch, c
     """Three families on chain:N=2 and 4: one finishes both, one fails its Newton (data: it
     stops, N=4 is not run), one raises (a defect: exit status 1)."""
     monkeypatch.setenv(PLUGIN_ENV, str(PLUGIN))
+    # The baseline's process shows nothing of how families stop, and
+    # test_processes_run_each_point_in_rounds runs it: here it is one process fewer.
+    monkeypatch.setattr(scaling, "baseline_rss", lambda env: None)
+    # Nothing here is timed: C runs once per point (microsecond runs would be started as
+    # processes until they total MIN_TIMED, fifty of them).
+    monkeypatch.setattr(scaling, "MIN_TIMED", 0.0)
     code = scaling.main(["--problems", "chain", "--n", "2", "4", "--steps", "5",
                          "--h", "chain=0.05", "--limit", "120", "--families", "rattle",
-                         "rattle:newton_max_iter=1", "test-raise", "--out", str(tmp_path)])
+                         "rattle:newton_max_iter=1", "test-raise", "--repeats", "1",
+                         "--out", str(tmp_path)])
     assert code == 1
     data = json.loads((tmp_path / "scaling.json").read_text())
     status = {(p["family"], p["n"]): p["status"] for p in data["points"]}
@@ -351,9 +358,12 @@ def test_each_point_is_its_median_process_and_the_ratio_to_c_that_of_the_medians
 
 
 @pytest.mark.slow
-def test_processes_run_each_point_in_rounds(tmp_path, capsys):
+def test_processes_run_each_point_in_rounds(tmp_path, capsys, monkeypatch):
     """``--processes 2`` runs every point twice in fresh processes and reports medians;
     the report says so."""
+    # C's microsecond runs would be started as processes until they total MIN_TIMED (fifty
+    # of them); one per point still gives each round its own time.
+    monkeypatch.setattr(scaling, "MIN_TIMED", 0.0)
     code = scaling.main(["--problems", "chain", "--n", "2", "--steps", "5",
                          "--h", "chain=0.05", "--limit", "120", "--families", "rattle",
                          "--processes", "2", "--repeats", "1", "--out", str(tmp_path)])
