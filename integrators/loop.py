@@ -411,15 +411,16 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
 
     One trajectory's loop is compiled with the exact-Jacobian fallback of simplified
     Newton left out (:func:`integrators.newton.deferred_fallback`), which is up to most of
-    its program and rarely needed. Where a step of that loop fails, the loop with the
-    fallback is compiled (once, then reused like the other) and continues from that step,
-    so the run's result is that of the loop with the fallback throughout: the same steps
-    up to the one that failed, which it takes again, and the same work counted (the
-    failed attempt's is not). An ensemble's loop is compiled without the
-    fallback too, and the lanes that failed in it go on with it from the steps they failed
-    at, as an ensemble of their own (its loop starts at the first of those steps, and each
-    lane waits until the loop reaches its own: :func:`_loop`). An ensemble compiled with
-    the fallback would pay for it in set-up and per step where no lane takes it.
+    its program and rarely needed. Where a step's Newton fails to converge in that loop,
+    the loop with the fallback is compiled (once, then reused like the other) and
+    continues from that step, so the run's result is that of the loop with the fallback
+    throughout: the same steps up to the one that failed, which it takes again, and the
+    same work counted (the failed attempt's is not). An ensemble's loop is compiled
+    without the fallback too, and the lanes whose Newton failed in it go on with it from
+    the steps they failed at, as an ensemble of their own (its loop starts at the first of
+    those steps, and each lane waits until the loop reaches its own: :func:`_loop`). An
+    ensemble compiled with the fallback would pay for it in set-up and per step where no
+    lane takes it.
 
     Parameters
     ----------
@@ -490,11 +491,10 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         return loop
 
     # Every path's loop is compiled without the fallback first: the structured paths'
-    # simplified Newton and the dense path's from FROZEN_MIN unknowns on both have one
-    # (integrators.newton). Where a method has none, both loops are one program, and the
-    # second is compiled (from the persistent cache) only for a run that fails. Decided
-    # here, not by the trace, since a loop kept on disk is loaded untraced
-    # (linalg.compiled).
+    # simplified Newton has one, and the dense path's from FROZEN_MIN unknowns on
+    # (integrators.newton). Decided here, not by the trace, since a loop kept on disk is
+    # loaded untraced (linalg.compiled). Only a step whose Newton did not converge is
+    # taken again: the fallback changes no other failure.
     begin, run, shape = compiled_loop(fallback=False)
     names = series_names(mech)
     solver = dict(linear_solver=linear_solver, pattern_nnz=pattern_nnz)
@@ -546,19 +546,19 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         return pair
 
     def retake(state, qv, E0, I0, codes):
-        # A step failed without the fallback: the loop with it takes that step again,
-        # from the state before it. `codes`: the lanes' failure codes, on the host.
+        # A step's Newton failed without the fallback: the loop with it takes that step
+        # again, from the state before it. `codes`: the lanes' failure codes, on the host.
         _, lane, carry, code, resid, *rest = state
         if not lanes:
             # The step count is handed over twice: as the loop's and as the lane's.
             return exact_loop()[1]((jnp.copy(lane), lane, carry, jnp.zeros_like(code),
                                     jnp.zeros_like(resid), *rest), E0, I0, *args)
-        # The lanes that failed go on from the steps they failed at, together, with the
+        # The lanes whose Newton failed go on from those steps, together, with the
         # fallback (one more compiled loop, of a power-of-two width so that few widths
         # are compiled; padded with repeats of the first, which compute alike and write
         # alike), and their results replace theirs: only the steps from each lane's
         # failure on are taken again.
-        failed = np.flatnonzero(codes)
+        failed = np.flatnonzero(codes == Failure.NEWTON)
         w = 1 << int(len(failed) - 1).bit_length()
         pick = jnp.asarray(np.concatenate([failed, np.full(w - len(failed), failed[0])]))
         loop = exact_loop(w)[1]
@@ -576,7 +576,7 @@ def march(mech: Mechanics, grid: Grid, h: float, carry0: Any, step: Step,
         state, E0, I0 = begin(carry0, *buffers)
         state, qv = run(state, E0, I0, *args)
         out = fetch(state, qv)
-        if np.any(out[1] != 0):
+        if np.any(out[1] == Failure.NEWTON):
             state, qv = retake(state, qv, E0, I0, out[1])
             out = fetch(state, qv)
         spare.append(state[6:8])

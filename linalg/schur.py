@@ -81,8 +81,7 @@ DENSE_MAX = 8
 #: not diagonal. The two paths leave the same ``|g|`` to round-off, and ``kkt`` is the
 #: faster on four-bar from about N = 16 on (``python -m benchmarks.perf.four_bar
 #: --crossover`` measures it); dense is kept while its step is cheap in absolute terms
-#: (four-bar up to N = 63, bricard): there Newton has the exact Jacobian at every
-#: iteration, with no fallback.
+#: (four-bar up to N = 63, bricard).
 DENSE_KKT_MAX = 128
 
 #: Names a run may ask for.

@@ -126,7 +126,7 @@ def test_a_failed_lane_does_not_hold_the_others_at_its_iteration_limit():
 
 
 def test_lanes_retaken_with_the_fallback_go_on_from_the_steps_they_failed_at():
-    # Traced without the fallback (as the first loop of a structured path is), the step
+    # Traced without the fallback (as the first loop of every path is), the step
     # fails for lane 1 at step 3 and for lane 3 at step 6; with it, never. The loop with the
     # fallback takes those two lanes from their own failed steps: from step 3 on, lane 3
     # waiting (stepped from lane 1's state, its result dropped) until step 6.

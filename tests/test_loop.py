@@ -106,7 +106,7 @@ def test_a_solve_copies_the_rows_its_plan_uses_and_the_values_of_a_grid_of_those
 
 @pytest.mark.parametrize("lanes", [False, True])
 def test_a_run_retaken_with_the_fallback_keeps_its_records(lanes, handed):
-    # Without the fallback (the first loop of a structured path) the step fails for lane 1
+    # Without the fallback (the first loop of every path) the step fails for lane 1
     # at step 3; the loop with it takes that step again. The result is that of a loop that
     # never failed, bit for bit, and each of the two copies to the host is of the used
     # rows only.

@@ -167,13 +167,17 @@ def test_structured_generalized_alpha_accepts_the_round_off_of_large_coordinates
         assert np.max(traj.windows["pos"]) <= 1e-10
 
 
-def test_the_loop_with_the_fallback_takes_over_at_the_step_that_failed_without_it(monkeypatch):
+@pytest.mark.parametrize("key, limit", [("rattle", 6), ("lobatto3ab3:linear_solver=dense", 4)])
+def test_the_loop_with_the_fallback_takes_over_at_the_step_that_failed_without_it(
+        key, limit, monkeypatch):
     # RATTLE on chain:N=8 needs about 5.7 simplified iterations per step at h = 0.01; with a
-    # limit of 6 some steps leave simplified Newton unconverged. The loop compiled without
-    # the fallback stops there, and the loop with it (compiled then) takes that step again
-    # and goes on: the run ends as one whose loop held the fallback from the start.
+    # limit of 6 some steps leave simplified Newton unconverged, and so do lobatto3ab3's
+    # stages on the dense path (more than FROZEN_MIN unknowns: the frozen Jacobian) with 4.
+    # The loop compiled without the fallback stops there, and the loop with it (compiled
+    # then) takes that step again and goes on: the run ends as one whose loop held the
+    # fallback from the start.
     case = problems.make("chain:N=8").with_t_end(1.0)
-    method = integrators.make("rattle", h=1e-2, newton_max_iter=6)
+    method = integrators.make(key, h=1e-2, newton_max_iter=limit)
     grid = Grid(case.t0, case.t_end, n_windows=10, n_samples=11)
     monkeypatch.setattr(integrators.loop, "_LOOPS", OrderedDict())
     solve = method.prepare(case, grid)

@@ -311,8 +311,8 @@ def test_a_family_that_fails_stops_and_an_error_exits_1(tmp_path, monkeypatch, c
     """Three families on chain:N=2 and 4: one finishes both, one fails its Newton (data: it
     stops, N=4 is not run), one raises (a defect: exit status 1)."""
     monkeypatch.setenv(PLUGIN_ENV, str(PLUGIN))
-    # The baseline's process shows nothing of how families stop, and
-    # test_processes_run_each_point_in_rounds runs it: here it is one process fewer.
+    # The baseline's process shows nothing of how families stop
+    # (test_processes_run_each_point_in_rounds runs it).
     monkeypatch.setattr(scaling, "baseline_rss", lambda env: None)
     # Nothing here is timed: C runs once per point (microsecond runs would be started as
     # processes until they total MIN_TIMED, fifty of them).

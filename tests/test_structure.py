@@ -92,8 +92,7 @@ def test_structured_solve_does_not_depend_on_the_order_of_the_constraints(kind):
 def test_every_fixed_step_family_gives_the_dense_result_on_the_structured_path(spec, h, t_end, key):
     # The same equations solved to round-off by two linear algebras: the states agree to
     # accumulated round-off (chain:N=16 is chaotic, so the horizon is short). Each family
-    # on the chain, and the ring, whose hub rows make the solvers' dense border
-    # (test_structured_schur_solve_equals_dense), with one.
+    # on the chain, and rattle on the ring, whose hub couples every point.
     _, dense = solve(spec, f"{key}:linear_solver=dense", t_end, h=h)
     assert dense.linear_solver == "dense" and dense.pattern_nnz is None
     for kind in STRUCTURED:
@@ -199,11 +198,12 @@ def test_a_hub_row_on_a_block_mass_is_whitened_and_goes_to_the_border():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("key", ["lobatto3ab3", "genalpha"])
+@pytest.mark.parametrize("key", ["lobatto3ab3", "genalpha", "baumgarte-rk4"])
 def test_a_block_mass_gives_the_dense_result_on_the_structured_path(key):
     # rigid-chain: configuration-dependent 7 x 7 blocks, non-separable H. Measured at
     # N = 4 over t = 0.5: the paths agree to 1.5e-14 (q) and 2.6e-13 (v) or better, with
-    # rattle and baumgarte-rk4 too (the next test runs those two on a block mass).
+    # rattle too (on one block in the next test, on this chain against the C yardstick
+    # in test_scaling).
     _, dense = solve("rigid-chain:N=2", f"{key}:linear_solver=dense", 0.5, h=0.005)
     _, banded = solve("rigid-chain:N=2", f"{key}:linear_solver=banded", 0.5, h=0.005)
     assert banded.linear_solver == "banded" and banded.pattern_nnz > 0
@@ -222,7 +222,7 @@ def test_a_mass_matrix_function_written_as_kinetic_energy_takes_the_block_path(s
     # round-off, the velocities to the positions' divided by h, as generalized-alpha's
     # carry it. The blocks are the mechanism's, whichever method solves with them: a
     # Schur-complement method, the explicit one and generalized-alpha's velocities show
-    # it (the previous test runs lobatto3ab3 and genalpha on a block mass). Measured:
+    # it (the previous test runs the families on a chain of blocks). Measured:
     # 1.2e-12 in q and 4.8e-10 relative in v for genalpha-ggl on andrews, 1.4e-14 or less
     # for rattle, lobatto3ab3 and baumgarte-rk4 on both.
     case = problems.make(spec).with_t_end(50 * h)
