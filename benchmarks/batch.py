@@ -362,7 +362,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
               studies: Iterable[str] = (), grid_options: dict | None = None,
               load: Iterable[str] = (), cases=(), log: TextIO | None | str = "stderr",
               progress: bool | None = None, allow_large: bool = False,
-              start_notes: Iterable[str] = ()) -> list[Record]:
+              start_notes: Iterable[str] = (), audit_user: bool = True) -> list[Record]:
     """Run ``specs`` on an engine, store every run and write ``out/runs.csv``.
 
     Parameters
@@ -410,6 +410,9 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
     allow_large : bool
         Lift the size limit of problems (:func:`problems.check_size`) and the step limit
         :data:`STEP_LIMIT`.
+    audit_user : bool
+        Audit the user problems' functions (:func:`benchmarks.plan.plan`); off only for
+        cases whose system was audited before.
     start_notes : iterable of str
         Lines for ``log`` once the input is validated and the output folder taken, just
         before the first task starts (none when no task is left), so that bad input still
@@ -446,7 +449,7 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         version = provenance()["code_version"]
         keyed = version + _digest(loaded, blobs)
         notes: list[str] = []
-        runs = plan(specs, keyed, grid_options, timeout, allow_large, notes)
+        runs = plan(specs, keyed, grid_options, timeout, allow_large, notes, audit_user)
         said = executor.ready()
         for line in [*notes, *([said] if said else [])]:
             if log is not None:

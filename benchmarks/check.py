@@ -236,8 +236,10 @@ def probe(records, jobs: int | None, timeout: float | None, load
     if not probes:
         return {}
     with tempfile.TemporaryDirectory(prefix="driftbench-probe-") as tmp:
+        # A probe's system is its run's, audited (or built in) when that run was planned.
         results = run_specs([s for _, s in probes], Path(tmp), jobs, suite="check:probe",
-                            repeats=1, timeout=timeout, load=load, cases=cases, log=None)
+                            repeats=1, timeout=timeout, load=load, cases=cases, log=None,
+                            audit_user=False)
     moved: dict[str, set[str]] = {}
     seen: dict[str, dict[str, list[float]]] = {}
     for (i, _), result in zip(probes, results):
