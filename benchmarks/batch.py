@@ -449,7 +449,8 @@ def run_specs(specs: list[RunSpec], out: Path, jobs: int | None = None, *,
         version = provenance()["code_version"]
         keyed = version + _digest(loaded, blobs)
         notes: list[str] = []
-        runs = plan(specs, keyed, grid_options, timeout, allow_large, notes, audit_user)
+        runs = plan(specs, keyed, grid_options, timeout, allow_large, notes,
+                    audit_user=audit_user)
         said = executor.ready()
         for line in [*notes, *([said] if said else [])]:
             if log is not None:

@@ -74,7 +74,7 @@ import jaxlib
 from jax._src import lru_cache
 
 from benchmarks.records import versions
-from linalg.compiled import KEPT_EVENT, KEPT_MAX_BYTES, keep_by_content, keeping
+from linalg.compiled import EVICT_TO, KEPT_EVENT, KEPT_MAX_BYTES, keep_by_content, keeping
 
 #: Environment variable naming the cache folder, or ``off``.
 ENV = "DRIFTBENCH_COMPILE_CACHE"
@@ -84,9 +84,6 @@ MAX_BYTES = 2 * 1024**3
 #: projection, a measure) each take far longer to compile than to read back, and a
 #: set-up that compiles even one of them is no longer served by the cache alone.
 MIN_COMPILE_S = 0.0
-
-#: The share of :data:`MAX_BYTES` the folder is brought down to when a write would pass it.
-EVICT_TO = 0.9
 
 _lock = threading.Lock()
 #: Executables read from the cache, and backend compilations (each one, read or compiled).
@@ -121,7 +118,8 @@ class CountedCache(lru_cache.LRUCache):
     """JAX's persistent cache of executables, bounded by least recent use, with the folder
     counted at this process's first write and again only when what it has written since
     would pass the bound. The least recently used entries then go, as in JAX's cache, but
-    down to :data:`EVICT_TO` of the bound, so that the writes after them need no count.
+    down to :data:`linalg.compiled.EVICT_TO` of the bound, as the kept programs' folder
+    is, so that the writes after them need no count.
 
     Between counts the other processes' writes are not seen, so the folder may pass the
     bound by what they wrote until one of them counts again.

@@ -74,6 +74,10 @@ LIFT_BYTES = 1 << 14
 KEEP_BYTES = 64 << 20
 #: Most bytes the folder of kept programs holds before the least recently used go.
 KEPT_MAX_BYTES = 1 << 30
+#: The share of its bound a folder of compiled programs is brought down to when a write
+#: would pass the bound: the writes after it then need no count (a folder kept at its
+#: bound would be counted at every write).
+EVICT_TO = 0.9
 #: Event recorded (``jax.monitoring``) for each program loaded from the folder.
 KEPT_EVENT = "/driftbench/compiled/kept_program_loaded"
 
@@ -241,7 +245,7 @@ def _store(path: Path, record: tuple) -> None:
     # more than the write once the folder holds thousands of programs.
     counted = _counted.get(path.parent)
     if counted is None or counted + len(data) > KEPT_MAX_BYTES:
-        _counted[path.parent] = _bound(path.parent, KEPT_MAX_BYTES)
+        _counted[path.parent] = _bound(path.parent, KEPT_MAX_BYTES, EVICT_TO)
     else:
         _counted[path.parent] = counted + len(data)
 
@@ -332,9 +336,9 @@ def _lapack_ready() -> bool:
 _counted: dict[Path, int] = {}
 
 
-def _bound(folder: Path, limit: int) -> int:
-    """Drop the least recently used programs of ``folder`` until they take at most
-    ``limit`` bytes; the bytes they then take."""
+def _bound(folder: Path, limit: int, keep: float = 1.0) -> int:
+    """Where the programs of ``folder`` take more than ``limit`` bytes, drop the least
+    recently used until they take at most ``keep * limit``; the bytes they then take."""
     entries = []
     for entry in os.scandir(folder):
         if not entry.name.endswith(".program"):
@@ -343,8 +347,10 @@ def _bound(folder: Path, limit: int) -> int:
             info = entry.stat()
             entries.append((info.st_mtime, info.st_size, entry.path))
     total = sum(size for _, size, _ in entries)
+    if total <= limit:
+        return total
     for _, size, path in sorted(entries):
-        if total <= limit:
+        if total <= keep * limit:
             break
         with contextlib.suppress(OSError):
             os.unlink(path)
